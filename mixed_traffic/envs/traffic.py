@@ -1,0 +1,276 @@
+"""Batched car-following environment in pure torch (ring road or open road).
+
+``B`` independent scenarios are stepped as tensor operations; each row resets on
+its own when it collides or reaches the time limit. Physics, profiles and the
+reward are the pure functions of :mod:`mixed_traffic.physics`,
+:mod:`mixed_traffic.profiles` and :func:`stage_terms`, which the SUMO backend shares.
+
+>>> from mixed_traffic import make_env
+>>> from torchrl.envs.utils import check_env_specs
+>>> env = make_env("ring", batch_size=4, seed=0)
+>>> check_env_specs(env)
+>>> td = env.rollout(10)
+>>> td["next", "cav", "gap"].shape
+torch.Size([4, 10, 1])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from mixed_traffic.physics import (
+    IDMParams,
+    car_following_accel,
+    idm_accel,
+    integrate,
+    leader_gaps,
+    params_as_tensors,
+)
+from mixed_traffic.scenarios import TrafficScenario, get_scenario
+
+Tensor = torch.Tensor
+
+
+# ----------------------------------------------------------------------------- shared pieces
+def observation_dim(sc: TrafficScenario) -> int:
+    return 2 * sc.n_vehicles if sc.observation == "seed" else 7 * sc.n_cav
+
+
+def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=torch.float32) -> dict:
+    """Specs of the car-following envs (both backends use these, so keys cannot drift)."""
+    n, nc = sc.n_vehicles, sc.n_cav
+
+    def u(*shape):
+        return Unbounded(shape=(*batch, *shape), dtype=dtype, device=device)
+
+    def flag():
+        return Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
+
+    cav = Composite({k: u(nc) for k in ("gap", "speed", "leader_speed", "head_gap", "head_speed", "accel")},
+                    shape=batch, device=device)
+    traffic = Composite({**{k: u(n) for k in ("pos", "speed", "accel", "gap")},
+                         **{k: u(1) for k in ("time", "v_eq", "J")}}, shape=batch, device=device)
+    observation = Composite(observation=u(observation_dim(sc)), cav=cav, traffic=traffic, collision=flag(),
+                            shape=batch, device=device)
+    lo, hi = sc.cav_accel_bounds
+    action = Bounded(low=torch.full((*batch, nc), lo, dtype=dtype, device=device),
+                     high=torch.full((*batch, nc), hi, dtype=dtype, device=device),
+                     shape=(*batch, nc), dtype=dtype, device=device)
+    reward = Composite(reward=u(1), cost=u(1), shape=batch, device=device)
+    done = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=batch, device=device)
+    return {"observation": observation, "action": action, "reward": reward, "done": done}
+
+
+def stage_terms(sc: TrafficScenario, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor) -> tuple[Tensor, Tensor]:
+    """DeeP-LCC stage cost J and the constraint cost, both ``[..., 1]``.
+
+    J = w_v sum_{i != head} (v_i - v_eq)^2 + w_s sum_cav clip(s - s*, +-clip)^2 + w_u sum_cav a^2
+    cost = sum_cav max(0, s_min - s) / s_min  (gap clamped at 0, so each term is in [0, 1])
+    """
+    cav_gap = gap[..., list(sc.cav_indices)]
+    j = (sc.weight_v * (speed[..., 1:] - v_eq).pow(2).sum(-1, keepdim=True)
+         + sc.weight_s * (cav_gap - sc.s_star).clamp(-sc.spacing_clip, sc.spacing_clip).pow(2).sum(-1, keepdim=True)
+         + sc.weight_u * cav_accel.pow(2).sum(-1, keepdim=True))
+    cost = ((sc.s_min - cav_gap.clamp_min(0.0)).clamp_min(0.0) / sc.s_min).sum(-1, keepdim=True)
+    return j, cost
+
+
+def head_gaps(sc: TrafficScenario, pos: Tensor) -> Tensor:
+    """Distance from each CAV's front bumper to the head's rear bumper along the road."""
+    d = pos[..., :1] - pos[..., list(sc.cav_indices)]
+    if sc.is_ring:
+        d = torch.remainder(d, sc.ring_length)
+    return d - sc.vehicle_length
+
+
+def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor) -> Tensor:
+    """The policy input (see ``TrafficScenario.observation``)."""
+    if sc.observation == "seed":
+        if sc.is_ring:
+            p = torch.remainder(pos, sc.ring_length) / sc.ring_length
+        else:
+            p = (pos - pos[..., :1]) / 100.0
+        return torch.cat([speed / 30.0, p], dim=-1)
+    ci = list(sc.cav_indices)
+    v = speed[..., ci]
+    v_lead = speed[..., [i - 1 for i in ci]]
+    a_scale = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
+    feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos) / (2 * sc.s_max),
+             (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
+    return torch.stack(feats, dim=-1).flatten(-2)
+
+
+# ----------------------------------------------------------------------------- the env
+class TrafficEnv(EnvBase):
+    """Batched ring/open-road car-following environment (see the module docstring).
+
+    Args:
+        scenario: a preset name (``"ring"``, ``"deeplcc"``) or a :class:`TrafficScenario`.
+        batch_size: number of independent rows.
+        device: torch device of all tensors.
+        **overrides: scenario fields to override.
+    """
+
+    batch_locked = True
+
+    def __init__(self, scenario: str | TrafficScenario = "ring", *, batch_size: int = 1,
+                 device: str | torch.device = "cpu", **overrides):
+        if isinstance(scenario, TrafficScenario):
+            sc = dataclasses.replace(scenario, **overrides).validate()
+        else:
+            sc = get_scenario(scenario, **overrides)
+        super().__init__(device=device, batch_size=torch.Size([batch_size]))
+        self.scenario = sc
+        self.dt = sc.dt
+        self.J_max = sc.J_max
+        self.profile = sc.make_profile()
+        self.rng = torch.Generator().manual_seed(0)
+        B, n = batch_size, sc.n_vehicles
+        specs = make_specs(sc, (B,), device=self.device)
+        self.observation_spec = specs["observation"]
+        self.action_spec = specs["action"]
+        self.reward_spec = specs["reward"]
+        self.done_spec = specs["done"]
+
+        f = dict(dtype=torch.float32, device=self.device)
+        self._cav = torch.tensor(sc.cav_indices, dtype=torch.long, device=self.device)
+        self._hdv_mask = torch.zeros(n, dtype=torch.bool, device=self.device)
+        self._hdv_mask[list(sc.hdv_indices)] = True
+        self._a_lo, self._a_hi = sc.cav_accel_bounds
+        self._head_lo, self._head_hi = sc.head_accel_bounds
+        self._head_idm = params_as_tensors(IDMParams(), (), **f)
+        self._hdv_base = sc.hdv_defaults()
+        self._window = max(1, int(round(sc.v_eq_window / sc.dt)))
+        # state
+        self.pos = torch.zeros(B, n, **f)
+        self.vel = torch.zeros(B, n, **f)
+        self.acc = torch.zeros(B, n, **f)
+        self.step_count = torch.zeros(B, dtype=torch.long, device=self.device)
+        self.profile_params = self.profile.sample(B, self.rng).to(self.device)
+        self.hdv_params = params_as_tensors(self._hdv_base, (B, n), **f)
+        self.head_hist = torch.zeros(B, self._window, **f)
+        self.head_sum = torch.zeros(B, **f)
+        self._init_offsets = self._initial_positions()
+
+    # ------------------------------------------------------------------ helpers
+    def _initial_positions(self) -> Tensor:
+        sc = self.scenario
+        spacing = sc.initial_spacing() + sc.vehicle_length
+        offs = -spacing * torch.arange(sc.n_vehicles, dtype=torch.float32, device=self.device)
+        return torch.remainder(offs, sc.ring_length) if sc.is_ring else offs
+
+    def _v_eq(self) -> Tensor:
+        count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
+        return (self.head_sum / count).unsqueeze(-1)
+
+    def _push_head_speed(self, v_head: Tensor) -> None:
+        slot = (self.step_count % self._window).unsqueeze(-1)
+        old = self.head_hist.gather(1, slot).squeeze(-1)
+        full = self.step_count >= self._window
+        self.head_sum = self.head_sum + v_head - torch.where(full, old, torch.zeros_like(old))
+        self.head_hist.scatter_(1, slot, v_head.unsqueeze(-1))
+
+    def _gaps(self, pos: Tensor) -> Tensor:
+        sc = self.scenario
+        return leader_gaps(pos, sc.vehicle_length, sc.ring_length if sc.is_ring else None)
+
+    def _output(self, gap: Tensor, v_eq: Tensor, j: Tensor) -> dict:
+        sc = self.scenario
+        cav_acc = self.acc[:, self._cav]
+        ci = self._cav
+        return {
+            "observation": observe(sc, self.pos, self.vel, gap, cav_acc, v_eq),
+            "cav": {
+                "gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1],
+                "head_gap": head_gaps(sc, self.pos), "head_speed": self.vel[:, :1].expand(-1, len(ci)),
+                "accel": cav_acc,
+            },
+            "traffic": {
+                "pos": self.pos, "speed": self.vel, "accel": self.acc, "gap": gap,
+                "time": (self.step_count.unsqueeze(-1) * sc.dt).to(gap.dtype), "v_eq": v_eq, "J": j,
+            },
+        }
+
+    # ------------------------------------------------------------------ EnvBase API
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed) if seed is not None else torch.seed() % (2**63))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        B, sc = self.batch_size[0], self.scenario
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(B)
+        if mask is None:
+            mask = torch.ones(B, dtype=torch.bool, device=self.device)
+        idx = mask.nonzero().squeeze(-1)
+        k = int(idx.numel())
+        if k:
+            self.pos[idx] = self._init_offsets
+            self.vel[idx] = sc.v_init
+            self.acc[idx] = 0.0
+            self.step_count[idx] = 0
+            self.profile_params[idx] = self.profile.sample(k, self.rng).to(self.device)
+            if sc.hdv_param_noise > 0:
+                base = params_as_tensors(self._hdv_base, (k, sc.n_vehicles), device=self.device)
+                for name in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0"):
+                    if name in base:
+                        noise = 1.0 + sc.hdv_param_noise * (2 * torch.rand(k, sc.n_vehicles, generator=self.rng) - 1)
+                        self.hdv_params[name][idx] = base[name] * noise.to(self.device)
+            self.head_hist[idx] = 0.0
+            self.head_sum[idx] = 0.0
+            self._push_head_speed_rows(idx)
+        gap = self._gaps(self.pos)
+        v_eq = self._v_eq()
+        j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq)
+        out = self._output(gap, v_eq, j)
+        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
+        out.update(done=false, terminated=false.clone(), truncated=false.clone(), collision=false.clone())
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _push_head_speed_rows(self, idx: Tensor) -> None:
+        self.head_hist[idx, 0] = self.vel[idx, 0]
+        self.head_sum[idx] = self.vel[idx, 0]
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        sc = self.scenario
+        action = tensordict.get("action")
+        if action.shape != (self.batch_size[0], sc.n_cav):
+            raise ValueError(f"action: shape {tuple(action.shape)} is invalid; allowed: "
+                             f"{(self.batch_size[0], sc.n_cav)} (batch, n_cav) accelerations in m/s^2")
+        pos, vel = self.pos, self.vel
+        gap = self._gaps(pos)
+        v_lead = torch.roll(vel, 1, dims=-1)
+        # human drivers
+        acc = car_following_accel(sc.hdv_model, gap, vel, v_lead, self.hdv_params)
+        # head: track the profile's next speed within its bounds; on a ring never into its leader
+        t_next = (self.step_count + 1).to(vel.dtype) * sc.dt
+        v_target = self.profile.speed(t_next, self.profile_params)
+        a_head = ((v_target - vel[:, 0]) / sc.dt).clamp(self._head_lo, self._head_hi)
+        if sc.is_ring:
+            a_safe = idm_accel(gap[:, 0], vel[:, 0], v_lead[:, 0], **self._head_idm)
+            a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
+        acc = torch.where(self._hdv_mask, acc, torch.zeros_like(acc))
+        acc[:, 0] = a_head
+        acc[:, self._cav] = action.to(acc.dtype).clamp(self._a_lo, self._a_hi)
+        new_pos, new_vel, executed = integrate(pos, vel, acc, sc.dt, sc.integration)
+        if sc.is_ring:
+            new_pos = torch.remainder(new_pos, sc.ring_length)
+        self.pos, self.vel, self.acc = new_pos, new_vel, executed
+        self._push_head_speed(new_vel[:, 0])
+        self.step_count = self.step_count + 1
+        new_gap = self._gaps(new_pos)
+        collision = (new_gap[:, 1:] <= 0).any(-1, keepdim=True)
+        if sc.is_ring:
+            collision = collision | (new_gap[:, :1] <= 0)
+        v_eq = self._v_eq()
+        j, cost = stage_terms(sc, new_vel, new_gap, executed[:, self._cav], v_eq)
+        truncated = (self.step_count >= sc.max_steps).unsqueeze(-1)
+        out = self._output(new_gap, v_eq, j)
+        out.update(reward=-j, cost=cost, collision=collision, terminated=collision,
+                   truncated=truncated & ~collision, done=collision | truncated)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)

@@ -1,0 +1,206 @@
+"""Head-vehicle speed profiles.
+
+A profile is a small frozen dataclass with two pure methods:
+
+- ``sample(batch, generator)`` draws the random parameters of ``batch`` episodes
+  (a ``[batch, k]`` tensor; deterministic profiles return ``[batch, 0]``);
+- ``speed(t, params)`` gives the target speed (m/s) at times ``t`` (``[batch]``, s).
+
+The same objects drive the torch simulator, the SUMO backend and the evaluation
+harness, so a profile means the same thing everywhere.
+
+>>> import torch
+>>> from mixed_traffic.profiles import make_profile
+>>> prof = make_profile("deeplcc_brake")
+>>> p = prof.sample(1, torch.Generator().manual_seed(0))
+>>> [round(float(prof.speed(torch.tensor([t]), p)), 2) for t in (0.0, 2.0, 7.0, 12.0)]
+[15.0, 5.0, 5.0, 15.0]
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import torch
+
+Tensor = torch.Tensor
+
+
+def _interp(t: Tensor, knots_t: Tensor, knots_v: Tensor) -> Tensor:
+    """Piecewise-linear interpolation, held constant outside the knots (batched v)."""
+    t = t.clamp(float(knots_t[0]), float(knots_t[-1]))
+    idx = torch.searchsorted(knots_t, t.contiguous(), right=True).clamp(1, len(knots_t) - 1)
+    t0, t1 = knots_t[idx - 1], knots_t[idx]
+    if knots_v.dim() == 1:
+        v0, v1 = knots_v[idx - 1], knots_v[idx]
+    else:
+        v0 = knots_v.gather(-1, (idx - 1).unsqueeze(-1)).squeeze(-1)
+        v1 = knots_v.gather(-1, idx.unsqueeze(-1)).squeeze(-1)
+    w = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)
+    return v0 + w * (v1 - v0)
+
+
+@dataclass(frozen=True)
+class Constant:
+    """Constant speed ``v``."""
+
+    v: float = 15.0
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        return torch.zeros(batch, 0)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        return torch.full_like(t, self.v)
+
+
+@dataclass(frozen=True)
+class RandomSteps:
+    """Speed redrawn from U[v_low, v_high] every ``period`` seconds (the ring seed).
+
+    The first segment starts at ``v_init`` when given (the ring starts every car at
+    10 m/s), otherwise it is random too.
+    """
+
+    v_low: float = 5.0
+    v_high: float = 20.0
+    period: float = 15.0
+    horizon: float = 500.0
+    v_init: float | None = None
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        n = int(math.ceil(self.horizon / self.period)) + 1
+        v = self.v_low + (self.v_high - self.v_low) * torch.rand(batch, n, generator=generator)
+        if self.v_init is not None:
+            v[:, 0] = self.v_init
+        return v
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        idx = (t / self.period).floor().long().clamp(0, params.shape[-1] - 1)
+        return params.gather(-1, idx.unsqueeze(-1)).squeeze(-1)
+
+
+@dataclass(frozen=True)
+class RandomPerturbation:
+    """Persistent random perturbation around ``v_star`` of amplitude ``amplitude``.
+
+    Knots U[v* - A, v* + A] every ``period`` seconds, linearly interpolated (the
+    DeeP-LCC dataset's ±1/±3/±5 m/s scenarios). ``period`` equal to the time step
+    gives white noise on the target speed.
+    """
+
+    v_star: float = 15.0
+    amplitude: float = 1.0
+    period: float = 1.0
+    horizon: float = 500.0
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        n = int(math.ceil(self.horizon / self.period)) + 2
+        u = torch.rand(batch, n, generator=generator) * 2.0 - 1.0
+        u[:, 0] = 0.0  # start at the equilibrium speed
+        return self.v_star + self.amplitude * u
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        knots = torch.arange(params.shape[-1], dtype=t.dtype) * self.period
+        return _interp(t, knots, params)
+
+
+@dataclass(frozen=True)
+class Sine:
+    """``v_star + amplitude * sin(2 pi t / period)``."""
+
+    v_star: float = 15.0
+    amplitude: float = 5.0
+    period: float = 10.0
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        return torch.zeros(batch, 0)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        return self.v_star + self.amplitude * torch.sin(2.0 * math.pi * t / self.period)
+
+
+@dataclass(frozen=True)
+class PiecewiseLinear:
+    """Speed through fixed (time, speed) knots, held constant outside them."""
+
+    times: tuple[float, ...] = (0.0,)
+    speeds: tuple[float, ...] = (15.0,)
+
+    def __post_init__(self):
+        if len(self.times) != len(self.speeds) or len(self.times) == 0:
+            raise ValueError("profile knots: 'times' and 'speeds' must be non-empty and of equal length")
+        if any(b < a for a, b in zip(self.times, self.times[1:])):
+            raise ValueError("profile knots: 'times' must be non-decreasing")
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        return torch.zeros(batch, 0)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        if len(self.times) == 1:
+            return torch.full_like(t, self.speeds[0])
+        return _interp(t, torch.tensor(self.times, dtype=t.dtype), torch.tensor(self.speeds, dtype=t.dtype))
+
+
+def deeplcc_brake(start: float = 0.0, v0: float = 15.0) -> PiecewiseLinear:
+    """DeeP-LCC brake: -5 m/s^2 for 2 s from v0, hold 5 s, +2 m/s^2 for 5 s."""
+    return PiecewiseLinear(times=(0.0, start, start + 2.0, start + 7.0, start + 12.0),
+                           speeds=(v0, v0, v0 - 10.0, v0 - 10.0, v0))
+
+
+def emergency_brake(start: float = 50.0, v_cruise: float = 15.0, v_low: float = 2.0) -> PiecewiseLinear:
+    """Cruise, ramp to ``v_low`` over 3 s at ``start``, hold 10 s, back over 5 s."""
+    return PiecewiseLinear(times=(0.0, start, start + 3.0, start + 13.0, start + 18.0),
+                           speeds=(v_cruise, v_cruise, v_low, v_low, v_cruise))
+
+
+# EUDC speed breakpoints (km/h) from its 50 km/h cruise to the final 50 km/h, in s.
+_EUDC_T = (0, 13, 15, 63, 66, 67, 69, 140, 153, 154, 156, 203, 238, 268, 288, 289, 290, 298, 314, 322)
+_EUDC_V = (50, 70, 70, 70, 59, 59, 50, 50, 70, 70, 70, 70, 100, 100, 120, 120, 120, 120, 80, 50)
+
+
+def eudc(v_low: float = 5.0, v_high: float = 20.0, start: float = 0.0) -> PiecewiseLinear:
+    """The EUDC cycle's shape (50-120 km/h) mapped linearly into [v_low, v_high] m/s."""
+    lo, hi = min(_EUDC_V), max(_EUDC_V)
+    speeds = tuple(v_low + (v - lo) / (hi - lo) * (v_high - v_low) for v in _EUDC_V)
+    times = tuple(start + t for t in _EUDC_T)
+    return PiecewiseLinear(times=(0.0,) + times, speeds=(speeds[0],) + speeds)
+
+
+def nedc(start: float = 0.0) -> PiecewiseLinear:
+    """Modified NEDC for the DeeP-LCC platoon: the EUDC shape within 50-75 km/h.
+
+    The DeeP-LCC reference ships its modified cycle as a binary file; this keeps
+    the cycle's shape and squeezes it into the platoon's 14-21 m/s operating range.
+    """
+    return eudc(v_low=50 / 3.6, v_high=75 / 3.6, start=start)
+
+
+PROFILES = {
+    "constant": Constant,
+    "random_steps": RandomSteps,
+    "random_perturbation": RandomPerturbation,
+    "sine": Sine,
+    "piecewise": PiecewiseLinear,
+    "deeplcc_brake": deeplcc_brake,
+    "emergency_brake": emergency_brake,
+    "eudc": eudc,
+    "nedc": nedc,
+}
+
+
+def make_profile(name: str, **kwargs):
+    """Build a profile by name; unknown names or fields raise a ValueError naming them."""
+    if name not in PROFILES:
+        raise ValueError(f"profile: unknown name {name!r}; allowed: {sorted(PROFILES)}")
+    factory = PROFILES[name]
+    try:
+        return factory(**kwargs)
+    except TypeError as e:
+        allowed = [f.name for f in fields(factory)] if hasattr(factory, "__dataclass_fields__") else \
+            list(factory.__code__.co_varnames[: factory.__code__.co_argcount])
+        raise ValueError(f"profile {name!r}: bad arguments {sorted(kwargs)}; allowed: {allowed}") from e
+
+
+__all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomPerturbation", "Sine",
+           "PiecewiseLinear", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

@@ -1,0 +1,196 @@
+"""Scenario presets for the car-following environments, with validation.
+
+A :class:`TrafficScenario` is a plain dataclass: every field can be overridden by
+keyword (``make_env("ring", ring_length=260.0)``) or from a Hydra config, and
+:meth:`TrafficScenario.validate` turns bad input into a ``ValueError`` that names
+the field and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from mixed_traffic.physics import IDMParams, OVMParams, ovm_equilibrium_gap
+from mixed_traffic.profiles import PROFILES, make_profile
+
+
+@dataclass
+class TrafficScenario:
+    """One car-following scenario: road, vehicles, models, head profile, reward.
+
+    Vehicles are ordered head first along the direction of travel: index 0 is the
+    head (driven by ``profile``), ``cav_indices`` are driven by the action, the
+    rest are human drivers following ``hdv_model``.
+    """
+
+    name: str = "ring"
+    road: str = "ring"  # "ring" (positions modulo ring_length) or "open"
+    ring_length: float = 313.65
+    n_vehicles: int = 4
+    cav_indices: tuple[int, ...] = (1,)
+    hdv_model: str = "idm"  # "idm" or "ovm"
+    hdv_params: dict = field(default_factory=dict)  # overrides of the model's defaults
+    hdv_param_noise: float = 0.0  # per-episode relative spread, U[1-x, 1+x] per vehicle
+    vehicle_length: float = 5.0
+    dt: float = 0.1
+    episode_seconds: float = 500.0
+    v_init: float = 10.0
+    init_spacing: float | None = None  # bumper gap at start; None: ring even / open OVM equilibrium
+    integration: str = "euler"  # see mixed_traffic.physics.integrate
+    profile: str = "random_steps"
+    profile_kwargs: dict = field(default_factory=lambda: {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
+    head_accel_bounds: tuple[float, float] = (-3.0, 2.0)
+    cav_accel_bounds: tuple[float, float] = (-3.0, 3.0)
+    observation: str = "seed"  # "seed": [v_i/30, p_i/L]; "relative": per-CAV physical features
+    # reward (DeeP-LCC cost) and constraint cost
+    weight_v: float = 1.0
+    weight_s: float = 0.5
+    weight_u: float = 0.2
+    s_star: float = 20.0
+    spacing_clip: float = 20.0
+    v_eq_window: float = 20.0
+    v_dev_max: float = 15.0  # speed error used for the worst-case J_max
+    v_star: float = 15.0  # nominal equilibrium speed (DeeP-LCC errors are taken around it)
+    s_min: float = 5.0
+    s_max: float = 40.0
+
+    # ----------------------------------------------------------------- derived
+    @property
+    def is_ring(self) -> bool:
+        return self.road == "ring"
+
+    @property
+    def max_steps(self) -> int:
+        return int(round(self.episode_seconds / self.dt))
+
+    @property
+    def n_cav(self) -> int:
+        return len(self.cav_indices)
+
+    @property
+    def hdv_indices(self) -> tuple[int, ...]:
+        return tuple(i for i in range(1, self.n_vehicles) if i not in self.cav_indices)
+
+    def hdv_defaults(self):
+        base = IDMParams() if self.hdv_model == "idm" else OVMParams()
+        return dataclasses.replace(base, **self.hdv_params)
+
+    @property
+    def J_max(self) -> float:
+        """Worst-case DeeP-LCC cost of one step (maps the reward into [0, 1])."""
+        a_abs = max(abs(self.cav_accel_bounds[0]), abs(self.cav_accel_bounds[1]))
+        return (self.weight_v * (self.n_vehicles - 1) * self.v_dev_max**2
+                + self.weight_s * self.n_cav * self.spacing_clip**2
+                + self.weight_u * self.n_cav * a_abs**2)
+
+    def initial_spacing(self) -> float:
+        if self.init_spacing is not None:
+            return float(self.init_spacing)
+        if self.is_ring:
+            return self.ring_length / self.n_vehicles - self.vehicle_length
+        p = self.hdv_defaults()
+        if self.hdv_model == "ovm":
+            return ovm_equilibrium_gap(self.v_init, p.v_max, p.s_st, p.s_go)
+        # IDM equilibrium gap at v_init
+        return (p.s0 + self.v_init * p.T) / math.sqrt(max(1e-6, 1.0 - (self.v_init / p.v0) ** p.delta))
+
+    def make_profile(self):
+        kwargs = dict(self.profile_kwargs)
+        if self.profile in ("random_steps", "random_perturbation"):
+            kwargs.setdefault("horizon", self.episode_seconds)
+        return make_profile(self.profile, **kwargs)
+
+    # -------------------------------------------------------------- validation
+    def validate(self) -> TrafficScenario:
+        def bad(name, value, allowed):
+            raise ValueError(f"scenario {self.name!r}: {name}={value!r} is invalid; allowed: {allowed}")
+
+        if self.road not in ("ring", "open"):
+            bad("road", self.road, "'ring' or 'open'")
+        if not self.dt > 0:
+            bad("dt", self.dt, "dt > 0")
+        if not self.episode_seconds >= self.dt:
+            bad("episode_seconds", self.episode_seconds, f">= dt ({self.dt})")
+        if self.n_vehicles < 2:
+            bad("n_vehicles", self.n_vehicles, ">= 2 (a head and at least one follower)")
+        if self.n_cav < 1:
+            bad("cav_indices", self.cav_indices, "at least one CAV index")
+        for i in self.cav_indices:
+            if not (isinstance(i, int) and 1 <= i < self.n_vehicles):
+                bad("cav_indices", self.cav_indices, f"distinct integers in [1, {self.n_vehicles - 1}] (0 is the head)")
+        if len(set(self.cav_indices)) != self.n_cav:
+            bad("cav_indices", self.cav_indices, "distinct indices")
+        if self.hdv_model not in ("idm", "ovm"):
+            bad("hdv_model", self.hdv_model, "'idm' or 'ovm'")
+        base = IDMParams() if self.hdv_model == "idm" else OVMParams()
+        unknown = set(self.hdv_params) - {f.name for f in dataclasses.fields(base)}
+        if unknown:
+            bad("hdv_params", sorted(unknown), [f.name for f in dataclasses.fields(base)])
+        if not 0.0 <= self.hdv_param_noise < 1.0:
+            bad("hdv_param_noise", self.hdv_param_noise, "[0, 1)")
+        if self.vehicle_length <= 0:
+            bad("vehicle_length", self.vehicle_length, "> 0")
+        if self.is_ring:
+            if not self.ring_length > 0:
+                bad("ring_length", self.ring_length, "> 0")
+            min_len = self.n_vehicles * (self.vehicle_length + 1.0)
+            if self.ring_length < min_len:
+                bad("n_vehicles", self.n_vehicles,
+                    f"at most {int(self.ring_length // (self.vehicle_length + 1.0))} vehicles on a "
+                    f"{self.ring_length} m ring (vehicle_length {self.vehicle_length} m + 1 m minimum gap each)")
+        if self.init_spacing is not None and self.init_spacing <= 0:
+            bad("init_spacing", self.init_spacing, "> 0 or None")
+        if self.v_init < 0:
+            bad("v_init", self.v_init, ">= 0")
+        for name in ("head_accel_bounds", "cav_accel_bounds"):
+            lo, hi = getattr(self, name)
+            if not lo < 0 < hi:
+                bad(name, (lo, hi), "(low, high) with low < 0 < high")
+        if self.integration not in ("euler", "euler_explicit", "ballistic"):
+            bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
+        if self.observation not in ("seed", "relative"):
+            bad("observation", self.observation, "'seed' or 'relative'")
+        if self.profile not in PROFILES:
+            bad("profile", self.profile, sorted(PROFILES))
+        self.make_profile()  # raises ValueError naming bad profile arguments
+        if not 0 < self.s_min < self.s_max:
+            bad("s_min/s_max", (self.s_min, self.s_max), "0 < s_min < s_max")
+        if self.v_eq_window <= 0:
+            bad("v_eq_window", self.v_eq_window, "> 0")
+        return self
+
+
+def _ring() -> TrafficScenario:
+    return TrafficScenario()
+
+
+def _deeplcc() -> TrafficScenario:
+    return TrafficScenario(
+        name="deeplcc", road="open", n_vehicles=9, cav_indices=(3, 6), hdv_model="ovm",
+        dt=0.05, episode_seconds=50.0, v_init=15.0, profile="random_perturbation",
+        profile_kwargs={"v_star": 15.0, "amplitude": 1.0, "period": 1.0},
+        head_accel_bounds=(-5.0, 2.0), cav_accel_bounds=(-5.0, 2.0), observation="relative",
+        weight_v=1.0, weight_s=0.5, weight_u=0.1, v_dev_max=5.0,
+    )
+
+
+PRESETS = {"ring": _ring, "deeplcc": _deeplcc}
+
+
+def get_scenario(name: str, **overrides) -> TrafficScenario:
+    """A validated preset with ``overrides`` applied (unknown fields raise ValueError)."""
+    if name not in PRESETS:
+        raise ValueError(f"scenario: unknown preset {name!r}; allowed: {sorted(PRESETS)}")
+    sc = PRESETS[name]()
+    allowed = {f.name for f in dataclasses.fields(sc)}
+    unknown = set(overrides) - allowed
+    if unknown:
+        raise ValueError(f"scenario {name!r}: unknown override(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+    if "cav_indices" in overrides:
+        overrides["cav_indices"] = tuple(overrides["cav_indices"])
+    for key in ("head_accel_bounds", "cav_accel_bounds"):
+        if key in overrides:
+            overrides[key] = tuple(overrides[key])
+    return dataclasses.replace(sc, **overrides).validate()

@@ -1,0 +1,157 @@
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs.utils import check_env_specs
+
+from mixed_traffic import make_env
+from mixed_traffic.scenarios import get_scenario
+
+
+def constant(batch, n_cav, value):
+    """A policy commanding the same acceleration to every CAV."""
+    return TensorDictModule(lambda obs: torch.full((batch, n_cav), value), in_keys=["observation"], out_keys=["action"])
+
+
+@pytest.mark.parametrize("scenario", ["ring", "deeplcc"])
+@pytest.mark.parametrize("batch", [1, 16])
+def test_check_env_specs(scenario, batch):
+    check_env_specs(make_env(scenario, batch_size=batch, seed=0))
+
+
+@pytest.mark.parametrize("observation", ["seed", "relative"])
+def test_observation_modes(observation):
+    env = make_env("ring", batch_size=4, seed=0, observation=observation)
+    check_env_specs(env)
+    td = env.reset()
+    if observation == "seed":
+        # [v/30, p/L]: all start at 10 m/s
+        assert torch.allclose(td["observation"][:, :4], torch.full((4, 4), 10.0 / 30.0))
+
+
+def test_ring_preset_matches_the_seed_layout():
+    env = make_env("ring", batch_size=2, seed=0)
+    sc = env.scenario
+    assert (sc.ring_length, sc.n_vehicles, sc.cav_indices, sc.dt, sc.max_steps) == (313.65, 4, (1,), 0.1, 5000)
+    td = env.reset()
+    assert torch.all(td["traffic", "speed"] == 10.0)
+    gaps = td["traffic", "gap"]
+    assert torch.allclose(gaps, torch.full_like(gaps, 313.65 / 4 - 5.0))
+
+
+def test_same_seed_same_trajectory_and_rows_differ():
+    def run(seed):
+        env = make_env("ring", batch_size=4, seed=seed)
+        torch.manual_seed(0)
+        return env.rollout(400, break_when_any_done=False)["next", "traffic", "speed"]
+
+    a, b, c = run(1), run(1), run(2)
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+    head = a[:, -1, 0]  # after 40 s the rows' random head speeds differ
+    assert head.unique().numel() == 4
+
+
+def test_collision_terminates_only_that_row_and_it_restarts():
+    env = make_env("ring", batch_size=3, seed=0)
+    td = env.reset()
+    hit = None
+    for t in range(400):
+        a = torch.tensor([[3.0], [0.0], [0.0]])  # row 0 drives into its leader
+        td["action"] = a
+        full, td = env.step_and_maybe_reset(td)
+        if full["next", "collision"].any():
+            hit = full["next"]
+            break
+    assert hit is not None, "a CAV at +3 m/s^2 must reach its leader"
+    assert hit["collision"].squeeze(-1).tolist() == [True, False, False]
+    assert hit["terminated"].squeeze(-1).tolist() == [True, False, False]
+    assert hit["reward"].isfinite().all()
+    # the row restarted: initial spacing and speeds; the others carried on
+    assert torch.allclose(td["traffic", "speed"][0], torch.full((4,), 10.0))
+    assert td["traffic", "time"][0].item() == 0.0 and td["traffic", "time"][1].item() > 1.0
+
+
+def test_truncation_at_episode_length():
+    env = make_env("ring", batch_size=2, seed=0, episode_seconds=1.0)
+    td = env.rollout(12, break_when_any_done=False)
+    trunc = td["next", "truncated"][0, :, 0]
+    assert trunc[9].item() and not trunc[8].item()
+    assert not td["next", "terminated"].any()
+
+
+def test_speeds_never_negative_and_accel_within_bounds():
+    env = make_env("ring", batch_size=64, seed=0)
+    td = env.rollout(300, constant(64, 1, -3.0), break_when_any_done=False)
+    assert (td["next", "traffic", "speed"] >= 0).all()
+    acc = td["next", "cav", "accel"]
+    assert (acc >= -3.0 - 1e-5).all() and (acc <= 3.0 + 1e-5).all()
+
+
+def test_actions_outside_bounds_are_clipped():
+    env = make_env("ring", batch_size=1, seed=0)
+    td = env.reset().set("action", torch.tensor([[50.0]]))
+    assert env.step(td)["next", "cav", "accel"].item() == pytest.approx(3.0)
+
+
+def test_head_never_drives_into_its_leader_on_a_ring():
+    # a short crowded ring: the head's profile asks for 20 m/s but the car ahead (last) brakes to a stop
+    env = make_env("ring", batch_size=8, seed=0, ring_length=60.0, n_vehicles=4,
+                   profile="constant", profile_kwargs={"v": 20.0})
+    td = env.rollout(600, constant(8, 1, -3.0), break_when_any_done=False)
+    assert not td["next", "collision"].any()
+
+
+def test_reward_and_cost_terms():
+    env = make_env("ring", batch_size=2, seed=0, weight_v=1.0, weight_s=0.5, weight_u=0.2)
+    td = env.reset().set("action", torch.zeros(2, 1))
+    nxt = env.step(td)["next"]
+    sc = env.scenario
+    v, gap, veq = nxt["traffic", "speed"], nxt["traffic", "gap"], nxt["traffic", "v_eq"]
+    j = ((v[:, 1:] - veq) ** 2).sum(-1) + 0.5 * ((gap[:, 1] - 20).clamp(-20, 20) ** 2) + 0.2 * nxt["cav", "accel"][:, 0] ** 2
+    assert torch.allclose(-nxt["reward"][:, 0], j)
+    assert torch.all(nxt["cost"] == 0)
+    assert env.J_max == pytest.approx(1 * 3 * 15**2 + 0.5 * 20**2 + 0.2 * 9)
+    assert sc.s_min == 5.0
+
+
+def test_deeplcc_preset_starts_at_equilibrium():
+    env = make_env("deeplcc", batch_size=2, seed=0, profile="constant", profile_kwargs={"v": 15.0})
+    td = env.rollout(200, constant(2, 2, 0.0), break_when_any_done=False)
+    assert torch.allclose(td["next", "traffic", "speed"], torch.full_like(td["next", "traffic", "speed"], 15.0), atol=1e-4)
+    gap = td["next", "traffic", "gap"][..., 1:]
+    assert torch.allclose(gap, torch.full_like(gap, 15.0), atol=1e-3)
+    assert env.scenario.cav_indices == (3, 6)
+
+
+@pytest.mark.parametrize(
+    "overrides, field",
+    [
+        (dict(ring_length=-5.0), "ring_length"),
+        (dict(n_vehicles=60), "n_vehicles"),
+        (dict(cav_indices=(4,)), "cav_indices"),
+        (dict(dt=0.0), "dt"),
+        (dict(hdv_model="krauss"), "hdv_model"),
+        (dict(cav_accel_bounds=(1.0, 3.0)), "cav_accel_bounds"),
+        (dict(ringlength=300.0), "unknown override"),
+    ],
+)
+def test_bad_input_names_the_field(overrides, field):
+    with pytest.raises(ValueError, match=field):
+        make_env("ring", **overrides)
+
+
+def test_unknown_preset_and_bad_action_shape():
+    with pytest.raises(ValueError, match="unknown preset|unknown 'highway'"):
+        make_env("highway")
+    env = make_env("ring", batch_size=2)
+    td = env.reset().set("action", torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"action: shape \(2, 3\)"):
+        env.step(td)
+
+
+def test_scenario_overrides_reach_the_env():
+    sc = get_scenario("ring", ring_length=260.0, n_vehicles=6, cav_indices=[2, 4])
+    env = make_env("ring", batch_size=2, ring_length=260.0, n_vehicles=6, cav_indices=[2, 4])
+    assert env.scenario == sc
+    assert env.action_spec.shape == (2, 2)
+    check_env_specs(env)

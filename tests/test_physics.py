@@ -1,0 +1,98 @@
+import math
+
+import pytest
+import torch
+
+from mixed_traffic.physics import (
+    IDMParams,
+    OVMParams,
+    car_following_accel,
+    idm_accel,
+    integrate,
+    leader_gaps,
+    ovm_accel,
+    ovm_desired_speed,
+    ovm_equilibrium_gap,
+    params_as_tensors,
+    saturate_accel,
+)
+
+
+def test_ovm_equilibrium_is_15m_at_15ms():
+    p = OVMParams()
+    assert ovm_equilibrium_gap(15.0) == pytest.approx(15.0)
+    v = torch.tensor([15.0])
+    assert ovm_desired_speed(torch.tensor([15.0]), p.v_max, p.s_st, p.s_go).item() == pytest.approx(15.0)
+    acc = ovm_accel(torch.tensor([15.0]), v, v, alpha=p.alpha, beta=p.beta, v_max=p.v_max, s_st=p.s_st, s_go=p.s_go)
+    assert acc.abs().item() < 1e-5
+
+
+def test_ovm_homogeneous_platoon_settles_at_equilibrium_spacing():
+    # head at 15 m/s, 8 OVM followers starting off-equilibrium: all gaps converge to 15 m
+    n, dt = 9, 0.05
+    pos = -torch.arange(n, dtype=torch.float64) * (12.0 + 5.0)
+    vel = torch.full((n,), 15.0, dtype=torch.float64)
+    params = params_as_tensors(OVMParams(), (n,), dtype=torch.float64)
+    for _ in range(int(120 / dt)):
+        gap = leader_gaps(pos, 5.0, None)
+        acc = car_following_accel("ovm", gap, vel, torch.roll(vel, 1), params)
+        acc[0] = 0.0
+        pos, vel, _ = integrate(pos, vel, acc, dt, "euler_explicit")
+    gap = leader_gaps(pos, 5.0, None)[1:]
+    assert torch.allclose(gap, torch.full_like(gap, 15.0), atol=0.05)
+
+
+def test_ovm_saturation_and_emergency_brake():
+    # a big positive demand is clipped to +2, a fast approach brakes at -5
+    acc = saturate_accel(torch.tensor([10.0, 0.5]), torch.tensor([30.0, 4.0]), torch.tensor([10.0, 20.0]),
+                         torch.tensor([10.0, 5.0]), a_min=-5.0, a_max=2.0)
+    assert acc.tolist() == [2.0, -5.0]
+
+
+def test_idm_platoon_converges_to_analytic_equilibrium_gap():
+    p = IDMParams()
+    v_star = 10.0
+    s_eq = (p.s0 + v_star * p.T) / math.sqrt(1 - (v_star / p.v0) ** p.delta)
+    n, dt = 5, 0.1
+    pos = -torch.arange(n, dtype=torch.float64) * (30.0 + 5.0)
+    vel = torch.full((n,), v_star, dtype=torch.float64)
+    params = params_as_tensors(p, (n,), dtype=torch.float64)
+    for _ in range(3000):
+        gap = leader_gaps(pos, 5.0, None)
+        acc = car_following_accel("idm", gap, vel, torch.roll(vel, 1), params)
+        acc[0] = 0.0
+        pos, vel, _ = integrate(pos, vel, acc, dt)
+    gap = leader_gaps(pos, 5.0, None)[1:]
+    assert torch.allclose(gap, torch.full_like(gap, s_eq), atol=0.05), (gap, s_eq)
+
+
+def test_idm_deeplcc_parameter_set():
+    p = IDMParams.deeplcc()
+    assert (p.v0, p.T, p.a, p.b, p.delta, p.s0) == (30.0, 1.0, 1.0, 1.5, 4.0, 5.0)
+    # free road from standstill accelerates at a
+    acc = idm_accel(torch.tensor([1e6]), torch.tensor([0.0]), torch.tensor([0.0]), v0=p.v0, T=p.T, a=p.a, b=p.b,
+                    delta=p.delta, s0=p.s0)
+    assert acc.item() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_ring_gaps_wrap():
+    L = 100.0
+    pos = torch.tensor([[2.0, 90.0, 60.0]])  # head at 2 m has wrapped past the ring end
+    gap = leader_gaps(pos, 5.0, L)
+    # 90 -> 2 is 12 m ahead, 60 -> 90 is 30 m, head's leader (60) is 58 m ahead
+    assert torch.allclose(gap, torch.tensor([[58.0 - 5, 12.0 - 5, 30.0 - 5]]))
+
+
+def test_integrate_never_negative_speed_and_reports_executed_accel():
+    pos, vel, acc = torch.zeros(2), torch.tensor([0.2, 5.0]), torch.tensor([-3.0, -3.0])
+    p2, v2, ex = integrate(pos, vel, acc, 0.1)
+    assert (v2 >= 0).all()
+    assert ex[0].item() == pytest.approx(-2.0)  # stopped: only 0.2 m/s could be shed
+    assert ex[1].item() == pytest.approx(-3.0)
+    with pytest.raises(ValueError, match="integration"):
+        integrate(pos, vel, acc, 0.1, "rk4")
+
+
+def test_unknown_model_is_a_clear_error():
+    with pytest.raises(ValueError, match="hdv_model"):
+        car_following_accel("krauss", torch.ones(1), torch.ones(1), torch.ones(1), {})
