@@ -155,3 +155,14 @@ def test_scenario_overrides_reach_the_env():
     assert env.scenario == sc
     assert env.action_spec.shape == (2, 2)
     check_env_specs(env)
+
+
+def test_v_eq_is_the_rolling_mean_of_head_speed():
+    env = make_env("ring", batch_size=1, seed=0, profile="constant", profile_kwargs={"v": 10.0}, v_eq_window=2.0)
+    td = env.rollout(60, constant(1, 1, 0.0), break_when_any_done=False)
+    head = torch.cat([td["traffic", "speed"][0, :1, 0], td["next", "traffic", "speed"][0, :, 0]])
+    v_eq = td["next", "traffic", "v_eq"][0, :, 0]
+    for k in (0, 5, 19, 20, 21, 59):  # window of 20 steps, including the reset speed at first
+        lo = max(0, k + 1 - 19)
+        assert v_eq[k].item() == pytest.approx(head[lo : k + 2].mean().item(), abs=1e-5), k
+    assert v_eq[-1].item() == pytest.approx(10.0, abs=1e-5)

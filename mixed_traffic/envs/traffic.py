@@ -168,10 +168,11 @@ class TrafficEnv(EnvBase):
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
         return (self.head_sum / count).unsqueeze(-1)
 
-    def _push_head_speed(self, v_head: Tensor) -> None:
-        slot = (self.step_count % self._window).unsqueeze(-1)
+    def _push_head_speed(self, v_head: Tensor, step: Tensor) -> None:
+        """Record the head speed of step ``step`` in the rolling window (slot step % W)."""
+        slot = (step % self._window).unsqueeze(-1)
         old = self.head_hist.gather(1, slot).squeeze(-1)
-        full = self.step_count >= self._window
+        full = step >= self._window
         self.head_sum = self.head_sum + v_head - torch.where(full, old, torch.zeros_like(old))
         self.head_hist.scatter_(1, slot, v_head.unsqueeze(-1))
 
@@ -261,8 +262,8 @@ class TrafficEnv(EnvBase):
         if sc.is_ring:
             new_pos = torch.remainder(new_pos, sc.ring_length)
         self.pos, self.vel, self.acc = new_pos, new_vel, executed
-        self._push_head_speed(new_vel[:, 0])
         self.step_count = self.step_count + 1
+        self._push_head_speed(new_vel[:, 0], self.step_count)
         new_gap = self._gaps(new_pos)
         collision = (new_gap[:, 1:] <= 0).any(-1, keepdim=True)
         if sc.is_ring:
