@@ -1,0 +1,274 @@
+"""SafetyLayer: property tests of the pure math, then behaviour through the env."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from mixed_traffic import make_env
+from transforms import SafetyLayer
+from transforms.safety_layer import (
+    braking_distance,
+    head_accel_lower,
+    min_future_gap,
+    safe_accel_upper,
+    safe_action,
+)
+
+D64 = torch.float64
+PROP = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def t(x):
+    return torch.tensor([float(x)], dtype=D64)
+
+
+def brute_min_gap(gap, v, vl, dt, b, bl):
+    """Reference: simulate both braking step by step (ego at min(b, bl)), min over all gaps."""
+    b = min(b, bl)
+    lo = gap
+    while v > 0 or vl > 0:
+        v = max(v - b * dt, 0.0)
+        vl = max(vl - bl * dt, 0.0)
+        gap += (vl - v) * dt
+        lo = min(lo, gap)
+    return lo
+
+
+def brute_braking_distance(v, b, dt):
+    d = 0.0
+    while v > 0:
+        v = max(v - b * dt, 0.0)
+        d += v * dt
+    return d
+
+
+dts = st.sampled_from([0.05, 0.1, 0.2, 0.5])
+speeds = st.floats(0.0, 40.0)
+brakes = st.floats(1.0, 9.0)
+
+
+@PROP
+@given(v=speeds, b=brakes, dt=dts)
+def test_braking_distance_matches_simulation(v, b, dt):
+    assert float(braking_distance(t(v), b, dt)) == pytest.approx(brute_braking_distance(v, b, dt), abs=1e-9)
+
+
+@PROP
+@given(gap=st.floats(-5.0, 200.0), v=speeds, vl=speeds, b=brakes, bl=brakes, dt=dts)
+def test_min_future_gap_matches_simulation(gap, v, vl, b, bl, dt):
+    got = float(min_future_gap(t(gap), t(v), t(vl), dt=dt, brake=b, leader_brake=bl))
+    assert got == pytest.approx(brute_min_gap(gap, v, vl, dt, b, bl), abs=1e-7)
+
+
+@PROP
+@given(v=speeds, vl=speeds, b=brakes, bl=brakes, dt=dts, margin=st.floats(0.0, 50.0),
+       a_req=st.floats(-20.0, 20.0), a_lead=st.floats(0.0, 1.0), s_min=st.floats(1.0, 10.0),
+       a_max=st.floats(0.5, 4.0), head_gap_extra=st.floats(0.0, 100.0), head_speed=speeds,
+       use_smax=st.booleans())
+def test_invariant_is_kept_for_any_leader_within_its_bound(v, vl, b, bl, dt, margin, a_req, a_lead, s_min,
+                                                           a_max, head_gap_extra, head_speed, use_smax):
+    # a state in the safe set: every future gap >= s_min if both brake
+    bb = min(b, bl)
+    gap = s_min + max(0.0, brute_braking_distance(v, bb, dt) - brute_braking_distance(vl, bl, dt)) + margin
+    assert brute_min_gap(gap, v, vl, dt, b, bl) >= s_min - 1e-9
+    a = safe_action(t(a_req), gap=t(gap), speed=t(v), leader_speed=t(vl), head_gap=t(gap + head_gap_extra),
+                    head_speed=t(head_speed), low=-b, high=a_max, dt=dt, s_min=s_min,
+                    s_max=s_min + 20.0 if use_smax else None, leader_brake=bl)
+    a = float(a)
+    assert -b - 1e-12 <= a <= a_max + 1e-12
+    # the leader does anything within its bound: accel in [-bl, 3]
+    a_l = -bl + a_lead * (3.0 + bl)
+    v1 = max(v + a * dt, 0.0)
+    vl1 = max(vl + a_l * dt, 0.0)
+    gap1 = gap + (vl1 - v1) * dt
+    assert gap1 >= s_min - 1e-7
+    assert brute_min_gap(gap1, v1, vl1, dt, b, bl) >= s_min - 1e-7
+
+
+def test_multi_step_random_leader_never_below_s_min():
+    g = torch.Generator().manual_seed(0)
+    n, dt, s_min, b, bl = 4096, 0.1, 5.0, 3.0, 3.0
+    gap = torch.full((n,), 30.0, dtype=D64)
+    v = torch.rand(n, generator=g, dtype=D64) * 5
+    vl = torch.rand(n, generator=g, dtype=D64) * 30
+    lowest = math.inf
+    for _ in range(300):
+        req = (torch.rand(n, generator=g, dtype=D64) * 6 - 3) + 3.0  # mostly max accel
+        a = safe_action(req, gap=gap, speed=v, leader_speed=vl, head_gap=None, head_speed=None,
+                        low=-b, high=3.0, dt=dt, s_min=s_min, s_max=None, leader_brake=bl)
+        a_l = torch.where(torch.rand(n, generator=g) < 0.5, torch.full_like(vl, -bl),
+                          torch.rand(n, generator=g, dtype=D64) * 5 - bl)
+        v = (v + a * dt).clamp_min(0)
+        vl = (vl + a_l * dt).clamp_min(0)
+        gap = gap + (vl - v) * dt
+        lowest = min(lowest, float(gap.min()))
+    assert lowest >= s_min - 1e-9
+
+
+@PROP
+@given(gap=st.floats(0.0, 100.0), v=speeds, vl=speeds, head_gap=st.floats(0.0, 300.0), head_speed=speeds,
+       a_req=st.floats(-10.0, 10.0), mode=st.sampled_from(["stopping", "one_step"]))
+def test_s_min_wins_every_conflict(gap, v, vl, head_gap, head_speed, a_req, mode):
+    kw = dict(gap=t(gap), speed=t(v), leader_speed=t(vl), head_gap=t(head_gap), head_speed=t(head_speed),
+              low=-3.0, high=3.0, dt=0.1)
+    a = float(safe_action(t(a_req), s_min=5.0, s_max=40.0, mode=mode, **kw))
+    only_min = float(safe_action(t(a_req), s_min=5.0, s_max=None, mode=mode, **kw))
+    if mode == "stopping":
+        a_hi = float(safe_accel_upper(t(gap), t(v), t(vl), s_min=5.0, dt=0.1, brake=3.0, leader_brake=3.0))
+    else:
+        a_hi = 2.0 * (gap + (vl - v) * 0.1 - 5.0) / 0.01
+    a_lo = float(head_accel_lower(t(head_gap), t(v), t(head_speed), s_max=40.0, dt=0.1, mode=mode, accel_max=3.0))
+    # never above what s_min allows (unless even full braking is above it)
+    assert a <= max(a_hi, -3.0) + 1e-9
+    if a_lo > a_hi:  # conflict: the s_min bound (or full braking) decides
+        assert a == pytest.approx(min(max(a_hi, -3.0), 3.0), abs=1e-9)
+    # s_max can only raise the s_min-only action
+    assert a >= only_min - 1e-9
+
+
+finite = st.floats(-1e6, 1e6)
+
+
+@PROP
+@given(a_req=finite, gap=finite, v=finite, vl=finite, head_gap=finite, head_speed=finite,
+       mode=st.sampled_from(["stopping", "one_step"]), dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_no_nan_for_finite_inputs(a_req, gap, v, vl, head_gap, head_speed, mode, dtype):
+    def tt(x):
+        return torch.tensor([x], dtype=dtype)
+
+    a = safe_action(tt(a_req), gap=tt(gap), speed=tt(v), leader_speed=tt(vl), head_gap=tt(head_gap),
+                    head_speed=tt(head_speed), low=-3.0, high=3.0, dt=0.1, s_min=5.0, s_max=40.0, mode=mode)
+    assert torch.isfinite(a).all()
+    assert -3.0 <= float(a) <= 3.0
+
+
+@PROP
+@given(a_req=st.floats(-3.0, 3.0), v=speeds, vl=speeds, gap=st.floats(0.0, 100.0),
+       head_gap=st.floats(0.0, 100.0), head_speed=speeds, mode=st.sampled_from(["stopping", "one_step"]))
+def test_identity_when_no_constraint_binds(a_req, v, vl, gap, head_gap, head_speed, mode):
+    kw = dict(gap=t(gap), speed=t(v), leader_speed=t(vl), head_gap=t(head_gap), head_speed=t(head_speed),
+              low=-3.0, high=3.0, dt=0.1, s_min=5.0, s_max=40.0, mode=mode)
+    if mode == "stopping":
+        a_hi = float(safe_accel_upper(t(gap), t(v), t(vl), s_min=5.0, dt=0.1, brake=3.0, leader_brake=3.0))
+    else:
+        a_hi = 2.0 * (gap + (vl - v) * 0.1 - 5.0) / 0.01
+    a_lo = float(head_accel_lower(t(head_gap), t(v), t(head_speed), s_max=40.0, dt=0.1, mode=mode, accel_max=3.0))
+    a = float(safe_action(t(a_req), **kw))
+    if a_lo <= a_req <= a_hi:
+        assert a == a_req
+    # and both constraints switched off: always the identity within bounds
+    off = dict(kw, s_min=None, s_max=None)
+    assert float(safe_action(t(a_req), **off)) == a_req
+
+
+def test_one_step_mode_reproduces_the_original_rule():
+    gap, v, vl, dt = t(6.0), t(10.0), t(8.0), 0.1
+    a = safe_action(t(500.0), gap=gap, speed=v, leader_speed=vl, head_gap=None, head_speed=None, low=-1e9,
+                    high=1e9, dt=dt, s_min=5.0, s_max=None, mode="one_step")
+    predicted = 6.0 + (8.0 - 10.0) * dt - 0.5 * float(a) * dt**2
+    assert predicted == pytest.approx(5.0)
+
+
+def test_invalid_arguments_name_the_field():
+    with pytest.raises(ValueError, match="mode"):
+        SafetyLayer(mode="bogus")
+    with pytest.raises(ValueError, match="s_min"):
+        SafetyLayer(s_min=50.0, s_max=40.0)
+    with pytest.raises(ValueError, match="leader_brake"):
+        SafetyLayer(leader_brake=-1.0)
+    with pytest.raises(ValueError, match="dt"):
+        SafetyLayer(dt=0.0)
+
+
+# ----------------------------------------------------------------------------- through the env
+@pytest.mark.parametrize("scenario", ["ring", "deeplcc"])
+@pytest.mark.parametrize("mode", ["stopping", "one_step"])
+def test_check_env_specs(scenario, mode):
+    env = TransformedEnv(make_env(scenario, batch_size=3, seed=0), SafetyLayer(mode=mode))
+    check_env_specs(env)
+
+
+def test_reads_dt_and_leader_brake_from_env():
+    env = TransformedEnv(make_env("deeplcc", batch_size=2, seed=0), SafetyLayer())
+    env.reset()
+    sl = env.transform
+    assert sl.dt == pytest.approx(0.05)
+    # deeplcc: CAVs 3 and 6 follow OVM human drivers (a_min = -5)
+    low = torch.tensor([-5.0, -5.0])
+    assert sl._leader_brake_tensor(low).tolist() == [5.0, 5.0]
+
+
+def _max_accel_run(scenario, batch, steps, seed=0):
+    env = TransformedEnv(make_env(scenario, batch_size=batch, seed=seed), SafetyLayer())
+    high = env.action_spec.high.clone()
+    return env.rollout(steps, lambda td: td.set("action", high.clone()), break_when_any_done=False)
+
+
+@pytest.mark.parametrize("scenario", ["ring", "deeplcc"])
+def test_max_accel_policy_never_collides_short(scenario):
+    td = _max_accel_run(scenario, 32, 400)
+    assert not td["next", "collision"].any()
+    assert td["next", "cav", "gap"].min() >= 5.0 - 1e-3
+    clip_rate = td["next", "safety", "clipped"].float().mean()
+    assert 0.0 < clip_rate <= 1.0
+    # the recorded delta is executed minus commanded
+    delta = td["next", "safety", "delta"]
+    assert (delta <= 1e-6).all()  # clipping a max-accel command can only lower it
+    assert torch.equal(delta != 0, td["next", "safety", "clipped"])
+
+
+@pytest.mark.slow
+def test_max_accel_policy_5000_steps_256_rows_zero_collisions():
+    td = _max_accel_run("ring", 256, 5000)
+    assert int(td["next", "collision"].sum()) == 0
+    assert td["next", "cav", "gap"].min() >= 5.0 - 1e-3
+
+
+def test_braking_policy_stays_within_s_max_of_the_head():
+    s_max = 40.0
+    env = TransformedEnv(make_env("ring", batch_size=32, seed=1), SafetyLayer(s_min=5.0, s_max=s_max))
+    low = env.action_spec.low.clone()
+    td = env.rollout(1500, lambda td: td.set("action", low.clone()), break_when_any_done=False)
+    head_gap = td["next", "cav", "head_gap"].squeeze(-1)  # [B, T]
+    # the ring starts with the head 73 m ahead: from the first time the CAV is within
+    # s_max, the layer keeps it there (bounds allow: CAV +3 m/s^2 vs head +2 m/s^2)
+    inside = head_gap <= s_max
+    assert inside.any(-1).all()
+    first = inside.float().argmax(-1)
+    for row in range(head_gap.shape[0]):
+        assert head_gap[row, first[row]:].max() <= s_max + 1.0
+    assert not td["next", "collision"].any()
+
+
+@PROP
+@given(v=speeds, vh=speeds, dt=dts, a_max=st.floats(0.5, 4.0), slack=st.floats(0.0, 30.0),
+       a_req=st.floats(-10.0, 10.0), s_max=st.floats(20.0, 60.0))
+def test_s_max_invariant_is_kept_when_the_head_holds_its_speed(v, vh, dt, a_max, slack, a_req, s_max):
+    # a state from which full acceleration closes the speed deficit within s_max
+    grow = brute_braking_distance(max(vh - v, 0.0), a_max, dt)
+    h = s_max - grow - slack
+    a = float(safe_action(t(a_req), gap=t(1e3), speed=t(v), leader_speed=t(vh), head_gap=t(h),
+                          head_speed=t(vh), low=-3.0, high=a_max, dt=dt, s_min=None, s_max=s_max))
+    v1 = max(v + a * dt, 0.0)
+    h1 = h + (vh - v1) * dt
+    assert h1 <= s_max + 1e-7
+    assert h1 + brute_braking_distance(max(vh - v1, 0.0), a_max, dt) <= s_max + 1e-7
+
+
+def test_one_step_rule_is_not_enough_when_braking_is_bounded():
+    """Why "stopping" is the default: the one-step rule reacts too late at -3 m/s^2."""
+    def collisions(mode):
+        env = TransformedEnv(make_env("ring", batch_size=16, seed=1), SafetyLayer(mode=mode))
+        high = env.action_spec.high.clone()
+        td = env.rollout(400, lambda td: td.set("action", high.clone()), break_when_any_done=False)
+        return int(td["next", "collision"].sum())
+
+    assert collisions("stopping") == 0
+    assert collisions("one_step") > 0

@@ -1,0 +1,109 @@
+"""Residual action around a base controller: ``a = clip(a_base + w a_res, low, high)``.
+
+TorchRL has no transform that runs a second controller inside the env step and adds
+its output to the policy's, hence :class:`ResidualAction`.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+
+class ResidualAction(Transform):
+    """Executes ``clip(a_base + weight * a_res, low, high)``; the policy outputs ``a_res``.
+
+    The base controller is any ``TensorDictModule`` (MPC, NNMPC, IDM, ...) that reads the
+    current observation entries and writes its action (``base_out_key``, default its
+    first out key). It runs on a copy, so it cannot overwrite the policy's entries.
+    The rollout keeps the policy's residual under ``action`` (right for PPO log-probs)
+    and records the base action in ``("next", base_action_key)``.
+
+    Args:
+        base: the base controller.
+        weight: residual weight ``w`` (>= 0, default 1.0).
+        action_key: the action entry (default ``"action"``).
+        base_out_key: the key the base writes (default ``base.out_keys[0]``).
+        base_action_key: where the base action is logged (default ``("residual", "base_action")``).
+        low, high: the clip range; default the parent's action bounds.
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.controllers.classic import make_classic_policy
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import ResidualAction
+        >>> base_env = make_env("ring", batch_size=2, seed=0)
+        >>> env = TransformedEnv(base_env, ResidualAction(make_classic_policy("idm", base_env), weight=0.5))
+        >>> td = env.rollout(5, lambda td: td.set("action", torch.zeros(2, 1)))
+        >>> td["next", "residual", "base_action"].shape
+        torch.Size([2, 5, 1])
+    """
+
+    def __init__(self, base: TensorDictModuleBase, weight: float = 1.0, *, action_key: NestedKey = "action",
+                 base_out_key: NestedKey | None = None,
+                 base_action_key: NestedKey = ("residual", "base_action"),
+                 low: float | None = None, high: float | None = None):
+        if not weight >= 0:
+            raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
+        if low is not None and high is not None and not low < high:
+            raise ValueError(f"ResidualAction: low={low!r}, high={high!r} are invalid; allowed: low < high")
+        super().__init__(in_keys=[], out_keys=[base_action_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.base = base
+        self.weight = float(weight)
+        self.action_key = action_key
+        if base_out_key is None:
+            out_keys = getattr(base, "out_keys", None)
+            if not out_keys:
+                raise ValueError("ResidualAction: base_out_key=None but the base controller has no out_keys; "
+                                 "pass base_out_key")
+            base_out_key = out_keys[0]
+        self.base_out_key = base_out_key
+        self.base_action_key = base_action_key
+        self._low, self._high = low, high
+
+    def _bounds(self, like: torch.Tensor):
+        spec = self.parent.full_action_spec[self.action_key] if (self._low is None or self._high is None) else None
+        low = self._low if self._low is not None else spec.space.low
+        high = self._high if self._high is not None else spec.space.high
+        return torch.as_tensor(low).to(like), torch.as_tensor(high).to(like)
+
+    def base_action(self, tensordict: TensorDictBase) -> torch.Tensor:
+        with torch.no_grad():
+            out = self.base(tensordict.clone(False))
+        return out.get(self.base_out_key)
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a_res = tensordict.get(self.action_key, None)
+        if a_res is None:
+            if self.missing_tolerance:
+                return tensordict
+            raise KeyError(f"ResidualAction: {self.action_key!r} not found in the input tensordict")
+        a_base = self.base_action(tensordict).to(a_res.dtype).reshape(a_res.shape)
+        low, high = self._bounds(a_res)
+        executed = torch.minimum(torch.maximum(a_base + self.weight * a_res, low), high)
+        tensordict.set(self.action_key, executed)
+        tensordict.set(self.base_action_key, a_base)
+        return tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        val = tensordict.get(self.base_action_key, None)
+        if val is not None:
+            next_tensordict.set(self.base_action_key, val)
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        spec = self.parent.full_action_spec[self.action_key]
+        tensordict_reset.set(self.base_action_key, spec.zero())
+        return tensordict_reset
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec = self.parent.full_action_spec[self.action_key]
+        observation_spec[self.base_action_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        return observation_spec
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(weight={self.weight}, base={type(self.base).__name__})"

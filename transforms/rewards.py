@@ -1,0 +1,137 @@
+"""Rewards over the env's stage cost ``("traffic", "J")``.
+
+The env's own reward is ``-J`` (the raw quadratic DeeP-LCC cost). A negative-only
+reward invites ending the episode early (a collision stops the accumulation of
+negative reward), so :class:`NonNegativeReward` maps it to ``[0, 1]`` and makes a
+collision the worst outcome (-1). :class:`QuadraticReward` gives back the quadratic
+form, optionally scaled, normalised by ``J_max`` or with a collision reward.
+TorchRL's ``RewardScaling`` cannot express either (they read ``J`` and the collision
+flag, not the reward).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+
+class _StageCostReward(Transform):
+    def __init__(self, J_max: float | None, j_key: NestedKey, collision_key: NestedKey, reward_key: NestedKey):
+        if J_max is not None and not J_max > 0:
+            raise ValueError(f"{type(self).__name__}: J_max={J_max!r} is invalid; allowed: > 0 or None (read from the env)")
+        super().__init__(in_keys=[j_key, collision_key], out_keys=[reward_key])
+        self._J_max = J_max
+        self.j_key, self.collision_key, self.reward_key = j_key, collision_key, reward_key
+
+    @property
+    def J_max(self) -> float:
+        if self._J_max is None:
+            j_max = getattr(self.parent, "J_max", None) if self.parent is not None else None
+            if j_max is None:
+                raise ValueError(f"{type(self).__name__}: J_max=None but the parent env has no `J_max`; "
+                                 "pass J_max (> 0)")
+            self._J_max = float(j_max)
+        return self._J_max
+
+    def _reward(self, j: torch.Tensor, collision: torch.Tensor | None) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        j = next_tensordict.get(self.j_key)
+        collision = next_tensordict.get(self.collision_key, None)
+        reward = self._reward(j, collision)
+        old = next_tensordict.get(self.reward_key, None)
+        if old is not None:
+            reward = reward.to(old.dtype).reshape(old.shape)
+        next_tensordict.set(self.reward_key, reward)
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Recompute the reward of a collected batch (``"next"`` entries)."""
+        if "next" in tensordict.keys():
+            self._call(tensordict.get("next"))
+            return tensordict
+        return self._call(tensordict)
+
+
+class NonNegativeReward(_StageCostReward):
+    """``r = max(J_max - J, 0) / J_max`` in ``[0, 1]``, ``collision_reward`` (-1) on a collision.
+
+    Args:
+        J_max: worst-case stage cost; ``None`` reads ``env.J_max``.
+        collision_reward: reward of a step that ends in a collision (default -1.0).
+        j_key, collision_key, reward_key: entries read / written in ``"next"``.
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import NonNegativeReward
+        >>> env = TransformedEnv(make_env("ring", batch_size=2, seed=0), NonNegativeReward())
+        >>> r = env.rollout(5)["next", "reward"]
+        >>> bool(((r >= 0) & (r <= 1)).all())
+        True
+    """
+
+    def __init__(self, J_max: float | None = None, *, collision_reward: float = -1.0,
+                 j_key: NestedKey = ("traffic", "J"), collision_key: NestedKey = "collision",
+                 reward_key: NestedKey = "reward"):
+        super().__init__(J_max, j_key, collision_key, reward_key)
+        self.collision_reward = float(collision_reward)
+
+    def _reward(self, j, collision):
+        r = (self.J_max - j).clamp_min(0.0) / self.J_max
+        if collision is not None:
+            r = torch.where(collision.reshape(r.shape), torch.full_like(r, self.collision_reward), r)
+        return r
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        old = reward_spec[self.reward_key]
+        low = min(self.collision_reward, 0.0)
+        high = max(self.collision_reward, 1.0)
+        reward_spec[self.reward_key] = Bounded(low=low, high=high, shape=old.shape, dtype=old.dtype,
+                                               device=old.device)
+        return reward_spec
+
+
+class QuadraticReward(_StageCostReward):
+    """The raw quadratic reward ``r = -scale * J`` (``-J / J_max`` with ``normalize=True``).
+
+    Args:
+        scale: multiplies ``-J`` (> 0, default 1.0).
+        normalize: divide by ``J_max`` (read from the env unless given).
+        collision_reward: if set, the reward of a step that ends in a collision.
+        J_max, j_key, collision_key, reward_key: as in :class:`NonNegativeReward`.
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import QuadraticReward
+        >>> env = TransformedEnv(make_env("ring", batch_size=2, seed=0), QuadraticReward(normalize=True))
+        >>> td = env.rollout(5)
+        >>> bool(((td["next", "reward"] + td["next", "traffic", "J"] / env.J_max).abs() < 1e-6).all())
+        True
+    """
+
+    def __init__(self, scale: float = 1.0, *, normalize: bool = False, collision_reward: float | None = None,
+                 J_max: float | None = None, j_key: NestedKey = ("traffic", "J"),
+                 collision_key: NestedKey = "collision", reward_key: NestedKey = "reward"):
+        if not scale > 0:
+            raise ValueError(f"QuadraticReward: scale={scale!r} is invalid; allowed: > 0")
+        super().__init__(J_max, j_key, collision_key, reward_key)
+        self.scale, self.normalize, self.collision_reward = float(scale), bool(normalize), collision_reward
+
+    def _reward(self, j, collision):
+        r = -self.scale * j
+        if self.normalize:
+            r = r / self.J_max
+        if self.collision_reward is not None and collision is not None:
+            r = torch.where(collision.reshape(r.shape), torch.full_like(r, float(self.collision_reward)), r)
+        return r
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        old = reward_spec[self.reward_key]
+        reward_spec[self.reward_key] = Unbounded(shape=old.shape, dtype=old.dtype, device=old.device)
+        return reward_spec

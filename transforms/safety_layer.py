@@ -1,0 +1,365 @@
+"""Safety layer: clip each CAV's acceleration so it never closes below ``s_min``.
+
+Two constraints act on the commanded acceleration ``a`` of every CAV:
+
+* ``s_max`` (gap to the head vehicle) clips ``a`` UP, so a CAV cannot fall back
+  and let the head drift away;
+* ``s_min`` (gap to the physical leader) clips ``a`` DOWN and wins every conflict:
+  it is applied last.
+
+Modes
+-----
+``mode="stopping"`` (default) guarantees no collision when the executed
+acceleration is bounded (the env clips the action to ``cav_accel_bounds``). It keeps
+the post-step state inside the *safe set*: if from now on the leader brakes as hard
+as it can (``leader_brake``) and the CAV brakes at ``b = min(ego_brake, leader_brake)``,
+every future gap stays ``>= s_min``. The prediction uses the env's discrete update
+(``v' = max(v + a dt, 0)``, ``x' = x + v' dt``), so the guarantee holds exactly in
+discrete time, not only in the continuous-time limit:
+
+* distance covered while braking at ``b`` from speed ``v`` (after the current step):
+  ``D(v, b) = dt * sum_{k>=1} max(v - k b dt, 0)`` (closed form below);
+* with ``b <= leader_brake`` the relative speed changes sign at most once (from
+  opening to closing), so the smallest future gap is either the next gap or the gap
+  once both have stopped: safe ⇔ ``s >= s_min`` and ``s + D(v_L, b_L) - D(v, b) >= s_min``;
+* the largest safe acceleration ``a_hi`` solves these two conditions for the
+  CAV's next speed, with the leader braking at its bound during the step
+  (the worst case: any leader behaviour within its bound leaves the leader ahead of
+  that trajectory at every step).
+
+From a safe state, braking at ``b`` keeps the state safe whatever the leader does, so
+``a_hi >= -b >= a_min`` and the clip is always feasible (recursive feasibility). If the
+state is already outside the safe set (bad initial condition) the layer brakes as
+hard as allowed.
+
+``mode="one_step"`` reproduces the original rule (a one-step constant-acceleration
+prediction ``s + v_rel dt - a dt^2 / 2``). It was safe only under a simulator that
+let the car brake without limit; use it for reproduction only.
+
+The s_max constraint assumes the head keeps its speed. In ``"stopping"`` mode it is
+the mirror image of the s_min rule: the CAV, limited to its maximum acceleration,
+must still be able to close its speed deficit to the head before the gap exceeds
+``s_max`` (otherwise a braking CAV would notice the overshoot one step too late and
+drift tens of metres beyond s_max). In ``"one_step"`` mode it is the original
+``h + (v_H - v) dt - a dt^2 / 2 <= s_max``.
+
+The guarantee is exact for the ``"euler"`` integration (the default of every preset);
+with ``"euler_explicit"`` / ``"ballistic"`` the same rule is a close approximation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+Tensor = torch.Tensor
+
+MODES = ("stopping", "one_step")
+
+
+# ----------------------------------------------------------------------------- pure math
+def braking_distance(v: Tensor, brake: Tensor | float, dt: float) -> Tensor:
+    """Distance covered after the current step when braking at ``brake`` (> 0) from speed ``v``.
+
+    Discrete update ``v_{k+1} = max(v_k - brake dt, 0)``, ``x_{k+1} = x_k + v_{k+1} dt``:
+    ``D = dt * sum_{k>=1} max(v - k h, 0)`` with ``h = brake dt``; with
+    ``n = floor(v / h)``: ``D = dt (n v - h n (n + 1) / 2)``.
+    """
+    v = v.clamp_min(0.0)
+    h = torch.as_tensor(brake, dtype=v.dtype, device=v.device) * dt
+    n = torch.floor(v / h)
+    return dt * (n * v - h * n * (n + 1.0) / 2.0).clamp_min(0.0)
+
+
+def min_future_gap(gap: Tensor, v: Tensor, v_leader: Tensor, *, dt: float,
+                   brake: Tensor | float, leader_brake: Tensor | float) -> Tensor:
+    """Smallest gap, now or later, when both brake (ego at ``min(brake, leader_brake)``)."""
+    b = torch.minimum(torch.as_tensor(brake, dtype=v.dtype), torch.as_tensor(leader_brake, dtype=v.dtype))
+    final = gap + braking_distance(v_leader, leader_brake, dt) - braking_distance(v, b, dt)
+    return torch.minimum(gap, final)
+
+
+def _max_speed_within_distance(c: Tensor, b: Tensor, dt: float) -> Tensor:
+    """Largest ``u >= 0`` with ``u dt + D(u, b) <= c`` (``c >= 0``).
+
+    ``F(u) = dt sum_{k>=0} max(u - k h, 0)`` is convex and piecewise linear with kinks
+    at ``u = m h`` where ``F(m h) = dt h m (m + 1) / 2``. On segment ``m`` the solution is
+    ``u = (c / dt + h m (m + 1) / 2) / (m + 1)``. Each segment's line lies below ``F``,
+    so a wrong segment can only overestimate ``u``: the minimum over the segment
+    computed from the square root and its two neighbours is exact despite rounding.
+    """
+    h = b * dt
+    c = c.clamp_min(0.0)
+    m0 = torch.floor((-1.0 + torch.sqrt(1.0 + 8.0 * c / (dt * h))) / 2.0)
+    best = None
+    for dm in (-1.0, 0.0, 1.0):
+        m = (m0 + dm).clamp_min(0.0)
+        u = (c / dt + h * m * (m + 1.0) / 2.0) / (m + 1.0)
+        best = u if best is None else torch.minimum(best, u)
+    return best
+
+
+def safe_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: float, dt: float,
+                     brake: Tensor | float, leader_brake: Tensor | float) -> Tensor:
+    """Largest acceleration that keeps the post-step state in the safe set (``"stopping"`` mode).
+
+    The result may lie below ``-brake`` only when the current state is already unsafe.
+    """
+    dtype = v.dtype
+    b_e = torch.as_tensor(brake, dtype=dtype, device=v.device)
+    b_l = torch.as_tensor(leader_brake, dtype=dtype, device=v.device)
+    b = torch.minimum(b_e, b_l)
+    v = v.clamp_min(0.0)
+    vl1 = (v_leader.clamp_min(0.0) - b_l * dt).clamp_min(0.0)  # leader brakes as hard as it can
+    # (ii) after the step both brake: u dt + D(u, b) <= s - s_min + vl1 dt + D(vl1, b_l)
+    c = gap - s_min + vl1 * dt + braking_distance(vl1, b_l, dt)
+    u2 = torch.where(c >= 0, _max_speed_within_distance(c, b, dt), c / dt)
+    # (i) the next gap itself: s + (vl1 - u) dt >= s_min
+    u1 = vl1 + (gap - s_min) / dt
+    u = torch.minimum(u1, u2)
+    return (u - v) / dt
+
+
+def one_step_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: float, dt: float) -> Tensor:
+    """The original rule: ``s + (v_L - v) dt - a dt^2 / 2 >= s_min``."""
+    return 2.0 * (gap + (v_leader - v) * dt - s_min) / dt**2
+
+
+def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: float, dt: float,
+                     mode: str = "stopping", accel_max: Tensor | float | None = None) -> Tensor:
+    """Smallest acceleration that keeps the gap to the head ``<= s_max``.
+
+    ``"stopping"`` mode (mirror image of the s_min rule): after this step the CAV can
+    close a speed deficit ``w = v_H - v'`` only at ``accel_max``, during which the gap
+    still grows by ``D(w, accel_max)``; so it requires
+    ``h + w dt + D(w, accel_max) <= s_max`` with the head at constant speed. Without
+    ``accel_max`` (or in ``"one_step"`` mode) only the next gap is predicted:
+    ``h + (v_H - v') dt <= s_max`` (``"one_step"``: the original
+    ``h + (v_H - v) dt - a dt^2 / 2 <= s_max``).
+    """
+    if mode == "one_step":
+        return 2.0 * (head_gap + (head_speed - v) * dt - s_max) / dt**2
+    room = s_max - head_gap
+    if accel_max is None:
+        w = room / dt
+    else:
+        up = torch.as_tensor(accel_max, dtype=v.dtype, device=v.device).clamp_min(1e-6)
+        w = torch.where(room >= 0, _max_speed_within_distance(room, up, dt), room / dt)
+    return (head_speed - w - v) / dt
+
+
+def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Tensor,
+                head_gap: Tensor | None, head_speed: Tensor | None, low: Tensor | float, high: Tensor | float,
+                dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
+                leader_brake: Tensor | float | None = None) -> Tensor:
+    """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
+
+    ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``.
+    """
+    low = torch.as_tensor(low, dtype=action.dtype, device=action.device)
+    high = torch.as_tensor(high, dtype=action.dtype, device=action.device)
+    a = torch.minimum(torch.maximum(action, low), high)
+    if s_max is not None:
+        a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high)
+        a = torch.maximum(a, torch.minimum(a_lo, high))
+    if s_min is not None:
+        if mode == "one_step":
+            a_hi = one_step_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt)
+        else:
+            lb = -low if leader_brake is None else leader_brake
+            a_hi = safe_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt, brake=-low, leader_brake=lb)
+        a = torch.minimum(a, a_hi)
+    return torch.minimum(torch.maximum(a, low), high)
+
+
+def scenario_leader_brake(scenario) -> list[float]:
+    """Braking bound (> 0) of each CAV's leader in a :class:`TrafficScenario`.
+
+    Vehicles are ordered head first, so CAV ``i`` follows vehicle ``i - 1``: the head
+    (``head_accel_bounds``), another CAV (``cav_accel_bounds``) or a human driver (the
+    car-following model's ``a_min``, widened by ``hdv_param_noise``).
+    """
+    out = []
+    for i in scenario.cav_indices:
+        lead = i - 1
+        if lead == 0:
+            out.append(-float(scenario.head_accel_bounds[0]))
+        elif lead in scenario.cav_indices:
+            out.append(-float(scenario.cav_accel_bounds[0]))
+        else:
+            a_min = float(scenario.hdv_defaults().a_min)
+            out.append(-a_min * (1.0 + float(scenario.hdv_param_noise)))
+    return out
+
+
+# ----------------------------------------------------------------------------- transform
+class SafetyLayer(Transform):
+    """Clips the CAV acceleration command so gaps stay within ``[s_min, s_max]``.
+
+    The policy's raw action stays in the rollout (right for PPO log-probs); the env runs
+    the clipped one. Per step the layer records, in ``"next"``:
+
+    * ``("safety", "clipped")`` (bool ``[B, n_cav]``): the layer changed the command;
+    * ``("safety", "delta")`` (``[B, n_cav]``, m/s^2): executed minus commanded
+      (commanded clipped to the action bounds first), so ``safety_clip_rate`` is
+      ``batch["next", "safety", "clipped"].float().mean()``.
+
+    Args:
+        s_min: minimum gap to the leader (m); ``None`` switches the constraint off.
+        s_max: maximum gap to the head vehicle (m); ``None`` switches it off.
+        dt: step length (s); ``None`` reads ``dt`` from the parent env.
+        mode: ``"stopping"`` (default, collision-free under bounded braking, see the
+            module docstring) or ``"one_step"`` (the original rule, for reproduction).
+        leader_brake: braking bound (> 0, m/s^2) of each CAV's leader, a float or one
+            value per CAV; ``None`` reads it from the parent's ``scenario``
+            (:func:`scenario_leader_brake`), else uses the CAV's own bound.
+        action_key: the action entry (default ``"action"``).
+        cav_keys: where to read the CAV state (defaults follow the env key contract).
+        out_keys: the two keys written into ``"next"`` (clipped flag, delta).
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import SafetyLayer
+        >>> env = TransformedEnv(make_env("ring", batch_size=4, seed=0), SafetyLayer(s_min=5.0, s_max=40.0))
+        >>> td = env.rollout(20, lambda td: td.set("action", env.action_spec.high.clone()))
+        >>> bool(td["next", "collision"].any())
+        False
+        >>> td["next", "safety", "clipped"].shape
+        torch.Size([4, 20, 1])
+    """
+
+    DEFAULT_CAV_KEYS = {
+        "gap": ("cav", "gap"),
+        "speed": ("cav", "speed"),
+        "leader_speed": ("cav", "leader_speed"),
+        "head_gap": ("cav", "head_gap"),
+        "head_speed": ("cav", "head_speed"),
+    }
+
+    def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
+                 mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
+                 action_key: NestedKey = "action", cav_keys: dict[str, NestedKey] | None = None,
+                 out_keys: Sequence[NestedKey] = (("safety", "clipped"), ("safety", "delta"))):
+        if mode not in MODES:
+            raise ValueError(f"SafetyLayer: mode={mode!r} is invalid; allowed: {list(MODES)}")
+        if s_min is not None and not s_min > 0:
+            raise ValueError(f"SafetyLayer: s_min={s_min!r} is invalid; allowed: > 0 or None")
+        if s_max is not None and not s_max > 0:
+            raise ValueError(f"SafetyLayer: s_max={s_max!r} is invalid; allowed: > 0 or None")
+        if s_min is not None and s_max is not None and not s_min < s_max:
+            raise ValueError(f"SafetyLayer: s_min={s_min} and s_max={s_max} are invalid; allowed: s_min < s_max")
+        if dt is not None and not dt > 0:
+            raise ValueError(f"SafetyLayer: dt={dt!r} is invalid; allowed: > 0 or None (read from the env)")
+        if leader_brake is not None:
+            lb = torch.as_tensor(leader_brake, dtype=torch.float64)
+            if not bool((lb > 0).all()):
+                raise ValueError(f"SafetyLayer: leader_brake={leader_brake!r} is invalid; allowed: > 0 (m/s^2) or None")
+        keys = dict(self.DEFAULT_CAV_KEYS)
+        if cav_keys:
+            unknown = set(cav_keys) - set(keys)
+            if unknown:
+                raise ValueError(f"SafetyLayer: cav_keys {sorted(unknown)} are invalid; allowed: {sorted(keys)}")
+            keys.update(cav_keys)
+        if len(out_keys) != 2:
+            raise ValueError(f"SafetyLayer: out_keys={out_keys!r} is invalid; allowed: two keys (clipped, delta)")
+        super().__init__(in_keys=[], out_keys=list(out_keys), in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.s_min, self.s_max, self.mode = s_min, s_max, mode
+        self._dt = dt
+        self._leader_brake = leader_brake
+        self.action_key = action_key
+        self.cav_keys = keys
+        self.clipped_key, self.delta_key = out_keys
+
+    # -------------------------------------------------------------- env lookups
+    @property
+    def dt(self) -> float:
+        if self._dt is None:
+            parent = self.parent
+            dt = getattr(parent, "dt", None) if parent is not None else None
+            if dt is None:
+                raise ValueError("SafetyLayer: dt=None but the parent env has no `dt`; pass dt explicitly (> 0)")
+            self._dt = float(dt)
+        return self._dt
+
+    def _bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        cached = self.__dict__.get("_bounds_cache")
+        if cached is None:
+            spec = self.parent.full_action_spec[self.action_key]
+            low, high = spec.space.low, spec.space.high
+            # one value per CAV (bounds do not vary along the batch)
+            while low.ndim > 1:
+                low, high = low[0], high[0]
+            cached = (low, high)
+            self.__dict__["_bounds_cache"] = cached
+        low, high = cached
+        return low.to(like), high.to(like)
+
+    def _leader_brake_tensor(self, low: Tensor) -> Tensor:
+        lb = self.__dict__.get("_lb_cache")
+        if lb is None:
+            if self._leader_brake is not None:
+                lb = torch.as_tensor(self._leader_brake, dtype=low.dtype)
+            else:
+                scenario = getattr(self.parent, "scenario", None) if self.parent is not None else None
+                if scenario is not None and hasattr(scenario, "cav_indices"):
+                    lb = torch.tensor(scenario_leader_brake(scenario), dtype=low.dtype)
+                else:
+                    lb = -low
+            self.__dict__["_lb_cache"] = lb
+        return lb.to(low)
+
+    # -------------------------------------------------------------- transform API
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(self.action_key, None)
+        if action is None:
+            if self.missing_tolerance:
+                return tensordict
+            raise KeyError(f"SafetyLayer: {self.action_key!r} not found in the input tensordict")
+        k = self.cav_keys
+        low, high = self._bounds(action)
+        need_head = self.s_max is not None
+        executed = safe_action(
+            action, gap=tensordict.get(k["gap"]), speed=tensordict.get(k["speed"]),
+            leader_speed=tensordict.get(k["leader_speed"]),
+            head_gap=tensordict.get(k["head_gap"]) if need_head else None,
+            head_speed=tensordict.get(k["head_speed"]) if need_head else None,
+            low=low, high=high, dt=self.dt, s_min=self.s_min, s_max=self.s_max, mode=self.mode,
+            leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
+        )
+        commanded = torch.minimum(torch.maximum(action, low), high)
+        delta = executed - commanded
+        tensordict.set(self.action_key, executed)
+        # the input is a shallow clone: these entries reach `_step`, not the rollout
+        tensordict.set(self.delta_key, delta)
+        tensordict.set(self.clipped_key, delta != 0)
+        return tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        for key in (self.clipped_key, self.delta_key):
+            val = tensordict.get(key, None)
+            if val is not None:
+                next_tensordict.set(key, val)
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        spec = self.parent.full_action_spec[self.action_key]
+        shape = spec.shape
+        tensordict_reset.set(self.clipped_key, torch.zeros(shape, dtype=torch.bool, device=spec.device))
+        tensordict_reset.set(self.delta_key, torch.zeros(shape, dtype=spec.dtype, device=spec.device))
+        return tensordict_reset
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec = self.parent.full_action_spec[self.action_key]
+        observation_spec[self.clipped_key] = Categorical(2, shape=spec.shape, dtype=torch.bool, device=spec.device)
+        observation_spec[self.delta_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        return observation_spec
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(s_min={self.s_min}, s_max={self.s_max}, mode={self.mode!r}, "
+                f"dt={self._dt})")
