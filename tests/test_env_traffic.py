@@ -55,7 +55,7 @@ def test_collision_terminates_only_that_row_and_it_restarts():
     env = make_env("ring", batch_size=3, seed=0)
     td = env.reset()
     hit = None
-    for t in range(400):
+    for _ in range(400):
         a = torch.tensor([[3.0], [0.0], [0.0]])  # row 0 drives into its leader
         td["action"] = a
         full, td = env.step_and_maybe_reset(td)

@@ -3,6 +3,8 @@
 >>> from transforms import SafetyLayer, LagrangianPenalty, NonNegativeReward
 """
 
+from transforms.barrier_force import BarrierForce
+from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.residual import ResidualAction
@@ -17,19 +19,6 @@ __all__ = [
     "QuadraticReward",
     "StateDiscretizer",
     "ResidualAction",
+    "DeePLCCHistory",
+    "BarrierForce",
 ]
-
-# transforms owned by other modules of the project: optional, so a missing file
-# does not break the package
-try:
-    from transforms.deeplcc_history import DeePLCCHistory  # noqa: F401
-
-    __all__.append("DeePLCCHistory")
-except ImportError:  # pragma: no cover
-    pass
-try:
-    from transforms.barrier_force import BarrierForce  # noqa: F401
-
-    __all__.append("BarrierForce")
-except ImportError:  # pragma: no cover
-    pass

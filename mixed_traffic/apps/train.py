@@ -1,0 +1,46 @@
+"""``mt-train``: train one configuration (or a sweep with ``-m``).
+
+    mt-train experiment=ring_lagrangian_ppo seed=1
+    mt-train experiment=ring_ppo loss=lagrangian_ppo transforms=safe
+    mt-train -m experiment=ring_ppo seed=0,1,2 loss=ppo,lagrangian_ppo hydra/launcher=joblib
+    mt-train experiment=ring_lagrangian_ppo resume=outputs/runs/ring_lagrangian_ppo/<run>
+    mt-train experiment=intersection_lppo_bff
+"""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
+
+register_configs()
+
+
+@hydra.main(config_path=CONFIG_PATH, config_name=CONFIG_NAME, version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    if cfg.env.scenario == "intersection":  # the intersection methods have their own loop
+        from mixed_traffic.intersection.train_lppo import run_experiment
+
+        out = run_experiment(cfg, cfg.out_dir)
+        return float(out.get("eval", {}).get("overall", {}).get("success_rate", float("nan")))
+
+    from mixed_traffic.training import train
+
+    result = train(cfg)
+    s = result["summary"]
+    if cfg.eval.after_train and not result["stopped_early"]:
+        from mixed_traffic.evaluation import evaluate_and_report
+
+        rep = evaluate_and_report(cfg, result["out_dir"] / "eval", checkpoint=result["out_dir"] / "final.pt")
+        print(f"report: {rep['paths']['md']}")
+    print(f"run directory: {result['out_dir']}")
+    if result["stopped_early"]:
+        print(f"stopped early at {s['frames']} frames; continue with resume={result['out_dir']}")
+    else:
+        print(f"final policy: {result['out_dir'] / 'final.pt'}  ({s['frames']} frames, {s['wall_seconds']:.0f} s)")
+    return float(s["final"].get("reward_per_step", float("nan")))
+
+
+if __name__ == "__main__":
+    main()

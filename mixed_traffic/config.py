@@ -1,0 +1,328 @@
+"""Structured configs (the schema of ``hydra_configs/``), registered in Hydra's ConfigStore.
+
+Every YAML file of a config group starts from one of the schemas below
+(``defaults: [<schema name>]``), so a misspelt key or a value of the wrong type fails at
+start-up with Hydra's own message, e.g.::
+
+    $ mt-train loss.clip_epsilom=0.2
+    Could not override 'loss.clip_epsilom'. ... Key 'clip_epsilom' not in 'PPOLossConfig'
+
+Groups and their schemas (``name`` registered in group ``group``):
+
+| group | schema (ConfigStore name) | dataclass |
+|---|---|---|
+| env | ``env_schema`` | :class:`EnvConfig` |
+| transforms | ``transforms_schema`` | :class:`TransformsConfig` |
+| policy | ``policy_schema`` | :class:`PolicyConfig` |
+| loss | ``ppo_schema``, ``dqn_schema``, ``q_learning_schema`` | :class:`PPOLossConfig`, :class:`DQNLossConfig`, :class:`QLearningLossConfig` |
+| trainer | ``on_policy_schema``, ``off_policy_schema``, ``tabular_schema`` | :class:`OnPolicyTrainerConfig`, ... |
+| logger | ``logger_schema`` | :class:`LoggerConfig` |
+| (top level) | ``base_config`` | :class:`Config` (``eval`` is :class:`EvalConfig`) |
+
+Call :func:`register_configs` (idempotent; importing this module does it) before
+composing: the apps and tests do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any  # noqa: UP035  (OmegaConf needs typing generics)
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+# ----------------------------------------------------------------------------- env
+
+
+@dataclass
+class EnvConfig:
+    """Which environment to build: ``make_env(scenario, backend=..., batch_size=num_envs, **overrides)``.
+
+    The named fields are the scenario fields the experiments change; ``None`` keeps the
+    preset's value. Any other scenario field goes in ``overrides`` (validated by
+    :func:`mixed_traffic.scenarios.get_scenario`, which names unknown fields).
+    ``num_envs`` lives in the trainer (rows stepped together).
+    """
+
+    scenario: str = "ring"
+    backend: str = "torch"
+    observation: str | None = None  # "seed" ([v/30, p/L]) or "relative" (per-CAV physical features)
+    profile: str | None = None
+    profile_kwargs: dict[str, Any] | None = None
+    episode_seconds: float | None = None
+    weight_v: float | None = None
+    weight_s: float | None = None
+    weight_u: float | None = None
+    s_min: float | None = None
+    s_max: float | None = None
+    hdv_param_noise: float | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- transforms
+
+
+@dataclass
+class SafetyLayerConfig:
+    """One-step safety filter: s_min clips the action down, s_max (head gap) clips it up."""
+
+    s_min: float = 5.0
+    s_max: float = 40.0
+    mode: str = "stopping"  # "stopping": collision-free under bounded braking; "one_step": the seed's rule
+
+
+@dataclass
+class NonNegativeRewardConfig:
+    """Reward ``max(J_max - J, 0) / J_max`` in [0, 1]; a collision gives ``collision_reward``."""
+
+    collision_reward: float = -1.0
+
+
+@dataclass
+class DiscretizerConfig:
+    """State bins for tabular Q (per observation dim) and action bins for DQN / tabular Q."""
+
+    state_bins: int = 20
+    action_bins: int = 21
+
+
+@dataclass
+class TransformsConfig:
+    """The env-side transform chain, applied in ``chain`` order.
+
+    Known names: ``non_negative_reward``, ``safety_layer``, ``step_counter`` ... (see
+    :data:`mixed_traffic.training.builders.TRANSFORMS`; an unknown name fails at start-up).
+    The Lagrangian penalty belongs to ``loss=lagrangian_ppo`` (lambda is an optimisation
+    variable, updated by dual ascent after each batch in the main process).
+    """
+
+    chain: list[str] = field(default_factory=lambda: ["non_negative_reward"])
+    safety_layer: SafetyLayerConfig = field(default_factory=SafetyLayerConfig)
+    non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
+    discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
+
+
+# ----------------------------------------------------------------------------- policy
+
+
+@dataclass
+class PolicyConfig:
+    """Network of the learner.
+
+    ``kind``: ``actor_critic`` (PPO: shared tanh trunk, orthogonal init, state-independent
+    log-std clamped to [log_std_min, log_std_max], TanhNormal to the action bounds),
+    ``qnet`` (DQN: MLP to Q-values over the discretised actions), ``q_table`` (tabular).
+    """
+
+    kind: str = "actor_critic"
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "tanh"
+    shared_trunk: bool = True
+    log_std_init: float = 0.0
+    log_std_min: float = -2.0
+    log_std_max: float = 0.5
+    value_bias_init: float = 0.0  # critic output bias at start (~ expected discounted return)
+
+
+# ----------------------------------------------------------------------------- losses
+
+
+@dataclass
+class PPOLossConfig:
+    """Clipped PPO (``name=ppo``) or Lagrangian PPO (``name=lagrangian_ppo``).
+
+    Lagrangian PPO: the advantage is computed on ``r - lambda * c`` (c = the env's
+    normalised s_min violation ``("next", "cost")``) and after each batch
+    ``lambda <- clip(lambda + lambda_lr * (mean(c) - violation_tolerance), 0, lambda_max)``.
+    """
+
+    name: str = "ppo"
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 0.5
+    clip_value: float | None = None  # value-function clipping (seed LPPO: 0.2)
+    normalize_advantage: bool = True
+    loss_critic_type: str = "l2"
+    # Lagrangian (name=lagrangian_ppo)
+    lambda_init: float = 1.0
+    lambda_lr: float = 0.05
+    lambda_max: float = 10.0
+    violation_tolerance: float = 0.1
+
+
+@dataclass
+class DQNLossConfig:
+    """Double DQN with a Huber loss and soft target updates."""
+
+    name: str = "dqn"
+    gamma: float = 0.99
+    double_dqn: bool = True
+    loss_function: str = "smooth_l1"
+    tau: float = 0.01
+
+
+@dataclass
+class QLearningLossConfig:
+    """Tabular TD(0) Q-learning on the discretised state and action."""
+
+    name: str = "q_learning"
+    gamma: float = 0.98
+    alpha: float = 0.2
+
+
+# ----------------------------------------------------------------------------- trainers
+
+
+@dataclass
+class _TrainerCommon:
+    total_frames: int = 1_000_000  # env transitions (rows x steps) over the whole run
+    num_envs: int = 256  # rows of the batched env stepped together
+    rollout_len: int = 16  # steps per row per collected batch: frames_per_batch = num_envs * rollout_len
+    checkpoint_every: int = 20  # iterations (batches) between checkpoints; 0 disables
+    log_every: int = 1
+    progress: bool = True  # tqdm bar
+    max_minutes: float | None = None  # stop after this wall-clock budget (checkpoint first)
+    max_iterations: int | None = None  # stop after this many iterations in this process (checkpoint first)
+    # start the rows at random points of their episode clock, so a batch mixes all phases
+    # of the head profile instead of every row meeting the same speed change at once
+    desync_start: bool = True
+
+
+@dataclass
+class OnPolicyTrainerConfig(_TrainerCommon):
+    kind: str = "on_policy"
+    lr: float = 3e-4
+    anneal_lr: bool = True
+    epochs: int = 6
+    minibatch_size: int = 4096
+    max_grad_norm: float = 0.5
+
+
+@dataclass
+class OffPolicyTrainerConfig(_TrainerCommon):
+    kind: str = "off_policy"
+    lr: float = 5e-4
+    buffer_size: int = 200_000
+    batch_size: int = 128
+    start_learning_after: int = 10_000
+    updates_per_batch: int = 1
+    target_update_every: int = 1  # iterations between soft target updates
+    eps_start: float = 1.0
+    eps_end: float = 0.1
+    eps_decay_frames: int = 500_000
+    max_grad_norm: float = 10.0
+
+
+@dataclass
+class TabularTrainerConfig(_TrainerCommon):
+    kind: str = "tabular"
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    eps_decay_frames: int = 1_000_000
+
+
+# ----------------------------------------------------------------------------- logger / eval
+
+
+@dataclass
+class LoggerConfig:
+    """TorchRL logger: ``csv`` (default, no account), ``wandb`` (offline unless mode=online), ``none``."""
+
+    backend: str = "csv"
+    project: str = "mixed-traffic"
+    mode: str = "offline"
+    log_dir: str = "logs"  # relative to the run directory
+
+
+@dataclass
+class EvalConfig:
+    """Deterministic evaluation after training (and by ``mt-eval``)."""
+
+    after_train: bool = False  # mt-train evaluates the final policy into <run>/eval (mt-main always does)
+    profiles: list[str] = field(default_factory=lambda: ["random_steps", "emergency_brake", "eudc", "sine"])
+    episodes: int = 20  # per profile (run as one batch)
+    seed: int = 1000  # evaluation seed (different from training seeds)
+    episode_seconds: float | None = None  # None: the scenario's
+    # per-episode spread of the human drivers' parameters (None: the scenario's, 0 on the ring);
+    # > 0 makes the episodes of a deterministic head profile differ from one another
+    hdv_param_noise: float | None = None
+    settle_seconds: float = 8.0  # steady state: the head's speed held this long
+    warmup_seconds: float = 20.0  # ignored at the episode start for tracking metrics
+    plot_episode: int = 0  # which episode of each profile is drawn
+    # head-profile arguments used by the evaluation (random_steps: the scenario's own)
+    profile_kwargs: dict[str, Any] = field(default_factory=lambda: {
+        "emergency_brake": {"start": 50.0, "v_cruise": 15.0, "v_low": 2.0},
+        "eudc": {"v_low": 5.0, "v_high": 20.0},
+        "sine": {"v_star": 12.5, "amplitude": 5.0, "period": 40.0},
+    })
+    # acceptance bar written into the report
+    s_min: float = 5.0
+    s_max: float = 40.0
+    rmse_bar: float = 1.0
+
+
+# ----------------------------------------------------------------------------- top level
+
+
+@dataclass
+class Config:
+    env: EnvConfig = MISSING
+    transforms: TransformsConfig = MISSING
+    policy: PolicyConfig = MISSING
+    loss: Any = MISSING  # one of the loss schemas
+    trainer: Any = MISSING  # one of the trainer schemas
+    logger: LoggerConfig = MISSING
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    name: str = "run"  # experiment name (set by experiment=...)
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 1  # torch intra-op threads per run (the joblib launcher runs jobs side by side)
+    checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
+    controller: str | None = None  # mt-eval: a classical controller instead ("idm" or "ovm")
+    resume: str | None = None  # path to a checkpoint (.pt) or a run directory
+    out_dir: str = "${hydra:runtime.output_dir}"
+
+
+_REGISTERED = False
+
+
+def register_configs() -> None:
+    """Register the schemas in Hydra's ConfigStore (safe to call more than once)."""
+    global _REGISTERED
+    if _REGISTERED:
+        return
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(group="env", name="env_schema", node=EnvConfig)
+    cs.store(group="transforms", name="transforms_schema", node=TransformsConfig)
+    cs.store(group="policy", name="policy_schema", node=PolicyConfig)
+    cs.store(group="loss", name="ppo_schema", node=PPOLossConfig)
+    cs.store(group="loss", name="dqn_schema", node=DQNLossConfig)
+    cs.store(group="loss", name="q_learning_schema", node=QLearningLossConfig)
+    cs.store(group="trainer", name="on_policy_schema", node=OnPolicyTrainerConfig)
+    cs.store(group="trainer", name="off_policy_schema", node=OffPolicyTrainerConfig)
+    cs.store(group="trainer", name="tabular_schema", node=TabularTrainerConfig)
+    cs.store(group="logger", name="logger_schema", node=LoggerConfig)
+    _REGISTERED = True
+
+
+register_configs()
+
+CONFIG_PATH = "pkg://hydra_configs"
+CONFIG_NAME = "config"
+
+
+def compose(overrides: list[str] | None = None, config_name: str = CONFIG_NAME, return_hydra_config: bool = False):
+    """Compose the project config outside a Hydra app (tests, notebooks, scripts)."""
+    from hydra import compose as _compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_configs()
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="hydra_configs", version_base="1.3"):
+        return _compose(config_name=config_name, overrides=list(overrides or []),
+                        return_hydra_config=return_hydra_config)

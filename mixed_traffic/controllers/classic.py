@@ -1,0 +1,69 @@
+"""Classical car-following models driving the CAV: IDM and OVM as policies.
+
+Each is a ``TensorDictModule`` reading the env's ``("cav", "gap")``, ``("cav", "speed")``
+and ``("cav", "leader_speed")`` and writing ``"action"`` (m/s^2, saturated and clipped
+to the CAV's bounds), so the evaluation harness runs them like any learned policy.
+
+>>> from mixed_traffic import make_env
+>>> from mixed_traffic.controllers.classic import make_classic_policy
+>>> env = make_env("ring", batch_size=2, seed=0)
+>>> td = env.rollout(50, make_classic_policy("idm", env))
+>>> bool(td["next", "collision"].any())
+False
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from mixed_traffic.physics import IDMParams, OVMParams, car_following_accel
+
+CLASSIC = ("idm", "ovm")
+
+
+class CarFollowingCAV(nn.Module):
+    """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules."""
+
+    def __init__(self, model: str, params, low: float, high: float):
+        super().__init__()
+        if model not in CLASSIC:
+            raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
+        self.model = model
+        self.params = {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)}
+        self.low, self.high = float(low), float(high)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
+        return a.clamp(self.low, self.high)
+
+
+def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
+                        **param_overrides) -> TensorDictModule:
+    """IDM (SUMO's defaults, as the ring's humans) or OVM (DeeP-LCC's set) driving every CAV.
+
+    Bounds come from ``env.action_spec`` unless given; ``param_overrides`` replace model
+    parameters (``make_classic_policy("idm", env, T=1.5)``); unknown names raise ValueError.
+    """
+    if model not in CLASSIC:
+        raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
+    base = IDMParams() if model == "idm" else OVMParams()
+    allowed = {f.name for f in dataclasses.fields(base)}
+    unknown = set(param_overrides) - allowed
+    if unknown:
+        raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {sorted(allowed)}")
+    params = dataclasses.replace(base, **param_overrides)
+    if low is None or high is None:
+        if env is None:
+            raise ValueError("make_classic_policy: pass env (for the action bounds) or low and high")
+        spec = env.action_spec
+        low = float(spec.space.low.flatten()[0]) if low is None else low
+        high = float(spec.space.high.flatten()[0]) if high is None else high
+    return TensorDictModule(CarFollowingCAV(model, params, low, high),
+                            in_keys=[("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")], out_keys=["action"])
+
+
+__all__ = ["make_classic_policy", "CarFollowingCAV", "CLASSIC"]

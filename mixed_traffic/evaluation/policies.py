@@ -1,0 +1,53 @@
+"""Turn a checkpoint (or a classical controller name) into an evaluation policy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from mixed_traffic.training.checkpoint import load_checkpoint
+
+
+def checkpoint_config(path: str | Path) -> tuple[DictConfig, dict]:
+    """The run config stored in a checkpoint (final.pt, checkpoints/latest.pt or a run directory)."""
+    p = Path(path)
+    if p.is_dir() and (p / "final.pt").is_file():
+        p = p / "final.pt"
+    state = load_checkpoint(p)
+    return OmegaConf.create(state["config"]), state
+
+
+def policy_factory_from_state(cfg: DictConfig, state: dict):
+    """A ``factory(env) -> deterministic policy`` rebuilding the trained network for any eval env."""
+    kind = state.get("kind", "ppo")
+
+    def factory(env):
+        if kind == "ppo":
+            from mixed_traffic.training.on_policy import build_ppo
+
+            actor, _, loss, _, _ = build_ppo(cfg, env)
+            if "actor" in state:
+                actor.load_state_dict(state["actor"])
+            else:  # a mid-run checkpoint: the loss module holds the actor's weights
+                loss.load_state_dict(state["model"], strict=False)
+            return actor
+        if kind == "dqn":
+            from mixed_traffic.training.off_policy import build_dqn_policy
+
+            return build_dqn_policy(cfg, env, state)
+        if kind == "q_table":
+            from mixed_traffic.training.tabular import build_table_policy
+
+            return build_table_policy(cfg, env, state)
+        raise ValueError(f"checkpoint kind {kind!r} is invalid; allowed: 'ppo', 'dqn', 'q_table'")
+
+    return factory
+
+
+def classic_factory(name: str):
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    return lambda env: make_classic_policy(name, env)
+
+

@@ -1,0 +1,69 @@
+"""Results table (docs/results.md) from evaluated run directories.
+
+    python -m mixed_traffic.evaluation.results outputs/results/*/      # prints a markdown table
+
+Each directory holds ``eval/report.json`` (from ``mt-main``, ``mt-train eval.after_train=true``
+or ``mt-eval``) and, for trained policies, ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from pathlib import Path
+
+COLUMNS = ("policy", "seed", "frames", "train wall (s)", "collisions / episodes", "min gap (m)",
+           "max head gap (m)", "time outside (s/ep)", "steady RMSE (m/s)", "mean abs a (m/s2)", "jerk (m/s3)", "return", "pass")
+
+
+def row(run_dir: str | Path) -> dict:
+    d = Path(run_dir)
+    rep_path = d / "eval" / "report.json" if (d / "eval" / "report.json").is_file() else d / "report.json"
+    rep = json.loads(rep_path.read_text())
+    summ = json.loads((d / "summary.json").read_text()) if (d / "summary.json").is_file() else {}
+    ov, acc = rep["overall"], rep["acceptance"]
+    return {
+        "policy": summ.get("name", rep.get("policy", d.name)), "seed": summ.get("seed", "–"),
+        "frames": summ.get("frames", "–"),
+        "train wall (s)": f"{summ['wall_seconds']:.0f}" if "wall_seconds" in summ else "–",
+        "collisions / episodes": f"{ov['collisions']} / {ov['episodes']}",
+        "min gap (m)": f"{ov['min_gap']:.2f}", "max head gap (m)": f"{ov['max_head_gap']:.2f}",
+        "time outside (s/ep)": f"{ov['time_outside']:.2f}",
+        "steady RMSE (m/s)": f"{acc['steady_speed_rmse']:.3f}",
+        "mean abs a (m/s2)": f"{ov['mean_abs_accel']:.3f}", "jerk (m/s3)": f"{ov['mean_abs_jerk']:.2f}",
+        "return": f"{ov['return']:.0f}", "pass": "yes" if acc["pass"] else "no",
+        "_wall": summ.get("wall_seconds"),
+    }
+
+
+def table(run_dirs) -> str:
+    rows = [row(d) for d in run_dirs]
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(str(r[c]) for c in COLUMNS) + " |" for r in rows]
+    walls = [r["_wall"] for r in rows if r["_wall"] is not None]
+    if walls:
+        lines += ["", f"median training wall-clock: {statistics.median(walls):.0f} s over {len(walls)} runs"]
+    return "\n".join(lines)
+
+
+def profile_table(run_dirs) -> str:
+    """Per seed and head profile: collisions, min gap, max head gap, time outside, steady RMSE."""
+    lines = ["| run | profile | collisions / episodes | min gap (m) | max head gap (m) | time outside (s/ep) | "
+             "steady RMSE (m/s) | mean abs a (m/s2) | safety clip rate |", "|" + "---|" * 9]
+    for d in run_dirs:
+        d = Path(d)
+        rep = json.loads((d / "eval" / "report.json").read_text())
+        for prof, r in rep["profiles"].items():
+            m = r["metrics"]
+            lines.append(f"| {d.name} | {prof} | {r['collisions']} / {len(r['per_episode']['collision'])} | "
+                         f"{m['min_gap']['min']:.2f} | {m['max_head_gap']['max']:.2f} | "
+                         f"{m['time_outside']['mean']:.2f} | {m['speed_rmse_steady']['mean']:.3f} ± "
+                         f"{m['speed_rmse_steady']['std']:.3f} | {m['mean_abs_accel']['mean']:.3f} | "
+                         f"{m['safety_clip_rate']['mean']:.2f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    dirs = [a for a in sys.argv[1:] if a != "--profiles"]
+    print(profile_table(dirs) if "--profiles" in sys.argv else table(dirs))

@@ -1,0 +1,140 @@
+"""Hydra config tree: every experiment composes, overrides swap one group, bad input fails early."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from mixed_traffic.config import compose
+
+ROOT = Path(__file__).resolve().parent.parent
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "hydra_configs" / "experiment").glob("*.yaml"))
+RING = ["ring_q_learning", "ring_dqn", "ring_ppo", "ring_lagrangian_ppo"]
+
+
+def test_ring_experiments_exist():
+    assert set(RING) <= set(EXPERIMENTS)
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_composes(name):
+    cfg = compose([f"experiment={name}"])
+    assert cfg.name == name
+    for group in ("env", "transforms", "policy", "loss", "trainer", "logger"):
+        assert group in cfg
+    # the whole tree resolves except Hydra's runtime interpolation of out_dir
+    cfg.out_dir = "x"
+    OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+
+
+def test_lagrangian_ppo_reproduces_the_seed_settings():
+    cfg = compose(["experiment=ring_lagrangian_ppo"])
+    assert (cfg.env.weight_v, cfg.env.weight_s, cfg.env.weight_u) == (5.0, 0.5, 0.1)
+    assert cfg.loss.name == "lagrangian_ppo"
+    assert cfg.loss.clip_epsilon == 0.15 and cfg.loss.clip_value == 0.2
+    assert cfg.trainer.lr == 3e-4 and cfg.trainer.epochs == 6
+    assert cfg.trainer.num_envs * cfg.trainer.rollout_len == 4096
+    assert (cfg.loss.lambda_init, cfg.loss.lambda_lr, cfg.loss.lambda_max, cfg.loss.violation_tolerance) == (
+        1.0, 0.05, 10.0, 0.1)
+    assert list(cfg.transforms.chain) == ["non_negative_reward", "safety_layer"]
+    # the layer runs with a 10 m margin below the 40 m bound the evaluation checks
+    assert (cfg.transforms.safety_layer.s_min, cfg.transforms.safety_layer.s_max) == (5.0, 30.0)
+    assert (cfg.eval.s_min, cfg.eval.s_max) == (5.0, 40.0)
+
+
+def test_baselines_use_the_seed_settings():
+    ppo = compose(["experiment=ring_ppo"])
+    assert "safety_layer" not in ppo.transforms.chain and ppo.loss.name == "ppo" and ppo.loss.clip_value is None
+    assert (ppo.env.weight_v, ppo.env.weight_s, ppo.env.weight_u) == (1.0, 0.5, 0.2)
+    dqn = compose(["experiment=ring_dqn"])
+    assert dqn.transforms.discretizer.action_bins == 21 and list(dqn.policy.hidden) == [128]
+    assert (dqn.trainer.lr, dqn.trainer.batch_size, dqn.trainer.buffer_size, dqn.loss.tau) == (5e-4, 128, 200000, 0.01)
+    q = compose(["experiment=ring_q_learning"])
+    assert (q.loss.alpha, q.loss.gamma, q.transforms.discretizer.state_bins) == (0.2, 0.98, 20)
+
+
+def test_one_override_swaps_a_loss_or_the_transform_chain():
+    cfg = compose(["experiment=ring_ppo", "loss=lagrangian_ppo"])
+    assert cfg.loss.name == "lagrangian_ppo" and cfg.loss.lambda_init == 1.0
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=reward"])
+    assert list(cfg.transforms.chain) == ["non_negative_reward"]
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms.chain=[safety_layer]"])
+    assert list(cfg.transforms.chain) == ["safety_layer"]
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("loss.clip_epsilom=0.2", "clip_epsilom"),
+    ("trainer.lr=fast", "trainer.lr"),
+    ("loss=ppo_typo", "ppo_typo"),
+    ("env.observtion=relative", "observtion"),
+])
+def test_bad_override_fails_with_hydras_message(override, fragment):
+    with pytest.raises(ConfigCompositionException) as e:
+        compose(["experiment=ring_lagrangian_ppo", override])
+    assert fragment in str(e.value)
+
+
+def test_misspelt_key_in_a_yaml_file_fails(tmp_path):
+    """The schema also guards the files: an option file with an unknown key does not compose."""
+    import shutil
+
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    shutil.copytree(ROOT / "hydra_configs", tmp_path / "conf")
+    (tmp_path / "conf" / "loss" / "bad.yaml").write_text("defaults:\n  - ppo_schema\nname: ppo\nclip_epsilom: 0.1\n")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(tmp_path / "conf"), version_base="1.3"):
+        with pytest.raises(Exception) as e:
+            hcompose(config_name="config", overrides=["loss=bad"])
+    GlobalHydra.instance().clear()
+    assert "clip_epsilom" in str(e.value)
+
+
+@pytest.mark.parametrize("launcher, target", [
+    ("basic", "BasicLauncher"),
+    ("joblib", "JoblibLauncher"),
+    ("joblib_local", "JoblibLauncher"),
+    ("slurm", "SlurmLauncher"),
+    ("ray", "RayLauncher"),
+])
+def test_launcher_configs_compose(launcher, target):
+    cfg = compose(["experiment=ring_ppo", f"hydra/launcher={launcher}"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith(target)
+
+
+def test_cross_group_mismatch_fails_before_training():
+    from mixed_traffic.training import check_config
+
+    with pytest.raises(ValueError, match="does not go with trainer"):
+        check_config(compose(["experiment=ring_ppo", "loss=dqn"]))
+    with pytest.raises(ValueError, match="unknown transform"):
+        check_config(compose(["experiment=ring_ppo", "transforms.chain=[safety_layr]"]))
+
+
+def _script(name):
+    exe = Path(sys.executable).parent / name
+    if not exe.exists():
+        pytest.skip(f"{name} console script not installed")
+    return str(exe)
+
+
+def test_installed_script_finds_the_configs_from_any_directory(tmp_path):
+    out = subprocess.run([_script("mt-train"), "experiment=ring_ppo", "--cfg", "job"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    assert out.returncode == 0, out.stderr
+    assert "name: ring_ppo" in out.stdout
+
+
+@pytest.mark.slow  # the same error is checked through compose() above; this adds the console script
+def test_installed_script_rejects_a_misspelt_key(tmp_path):
+    out = subprocess.run([_script("mt-train"), "experiment=ring_ppo", "trainer.totl_frames=10"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    assert out.returncode != 0
+    assert "totl_frames" in out.stderr and "Could not override" in out.stderr
+    assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("final.pt"))

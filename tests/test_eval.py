@@ -1,0 +1,117 @@
+"""Evaluation harness: metrics on known traces, classical controllers, reports from checkpoints, mt-eval."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mixed_traffic import make_env
+from mixed_traffic.config import compose
+from mixed_traffic.controllers.classic import make_classic_policy
+from mixed_traffic.evaluation import episode_metrics, evaluate, evaluate_and_report
+from mixed_traffic.training import train
+
+SHORT_EVAL = ["eval.episodes=2", "eval.episode_seconds=30.0", "eval.warmup_seconds=5.0", "eval.settle_seconds=3.0",
+              "eval.profiles=[random_steps,emergency_brake]", "eval.profile_kwargs.emergency_brake.start=10.0"]
+
+
+def _trace(T=100, dt=0.1):
+    """Two synthetic episodes: the second collides at step 60 and is masked afterwards."""
+    t = (torch.arange(T, dtype=torch.float32) + 1) * dt
+    gap = torch.full((2, T), 10.0)
+    gap[0, 30:40] = 4.0  # 1 s below s_min (after the 1 s warm-up)
+    gap[1, 59] = 0.0
+    head_gap = gap.clone()
+    head_gap[0, 50:55] = 45.0  # 0.5 s above s_max
+    v = torch.full((2, T), 10.0)
+    vh = torch.full((2, T), 10.0)
+    v[0, 80:] = 11.0  # 1 m/s error late in the steady phase
+    a_head = torch.zeros(2, T)
+    a_head[:, 70] = 1.0  # one head acceleration: steady resumes after `settle`
+    collision = torch.zeros(2, T, 1, dtype=torch.bool)
+    collision[1, 59] = True
+    done = collision.clone()
+    nxt = TensorDict({
+        "cav": {"gap": gap[..., None], "head_gap": head_gap[..., None], "speed": v[..., None],
+                "head_speed": vh[..., None], "accel": torch.zeros(2, T, 1)},
+        "traffic": {"time": t.expand(2, T)[..., None], "accel": torch.stack([a_head, a_head], -1),
+                    "J": torch.ones(2, T, 1)},
+        "reward": torch.ones(2, T, 1), "collision": collision, "done": done,
+    }, batch_size=[2, T])
+    return TensorDict({"next": nxt}, batch_size=[2, T])
+
+
+def test_episode_metrics_on_a_known_trace():
+    m, tr = episode_metrics(_trace(), dt=0.1, s_min=5.0, s_max=40.0, warmup=1.0, settle=0.5)
+    assert m["collision"].tolist() == [0.0, 1.0]
+    assert m["min_gap"].tolist() == [4.0, 0.0]
+    assert m["time_outside"][0].item() == pytest.approx(1.5)  # 10 steps below s_min + 5 above s_max
+    assert m["length"].tolist() == pytest.approx([10.0, 6.0])
+    assert m["return"].tolist() == [100.0, 60.0]  # masked after the collision
+    # steady: head still for >= 0.5 s; errors of 1 m/s on steps 80..99, steady samples from step 76 on
+    n_steady = (torch.arange(100) >= 9).sum() - 5  # after warm-up, minus the 5 steps after the head's pulse
+    assert m["speed_rmse_steady"][0].item() == pytest.approx((20 / n_steady.item()) ** 0.5, rel=1e-4)
+    assert not tr.valid[1, 60:].any()
+
+
+def test_classic_controllers_follow_without_collision():
+    for name in ("idm", "ovm"):
+        env = make_env("ring", batch_size=3, seed=0)
+        td = env.rollout(600, make_classic_policy(name, env), break_when_any_done=False)
+        assert not td["next", "collision"].any(), name
+        a = td["action"]
+        assert (a >= -3.0).all() and (a <= 3.0).all()
+    with pytest.raises(ValueError, match="allowed"):
+        make_classic_policy("idm", env, T_typo=1.0)
+    with pytest.raises(ValueError, match="allowed"):
+        make_classic_policy("pid", env)
+
+
+def test_evaluate_a_classical_controller_is_deterministic():
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=reward"] + SHORT_EVAL)
+    r1, _ = evaluate(cfg, policy_factory=lambda env: make_classic_policy("idm", env))
+    r2, _ = evaluate(cfg, policy_factory=lambda env: make_classic_policy("idm", env))
+    assert r1["overall"] == r2["overall"]
+    assert set(r1["profiles"]) == {"random_steps", "emergency_brake"}
+    assert r1["overall"]["collisions"] == 0 and r1["overall"]["episodes"] == 4
+
+
+def test_report_from_a_trained_checkpoint(tmp_path):
+    cfg = compose(["experiment=ring_lagrangian_ppo", "trainer.num_envs=8", "trainer.rollout_len=4",
+                   "trainer.total_frames=96", "trainer.progress=false", "trainer.epochs=1",
+                   "trainer.minibatch_size=16"] + SHORT_EVAL)
+    train(cfg, out_dir=tmp_path / "run")
+    rep = evaluate_and_report(cfg, tmp_path / "eval", checkpoint=tmp_path / "run" / "final.pt")
+    data = json.loads((tmp_path / "eval" / "report.json").read_text())
+    assert data["overall"]["episodes"] == 4 and "acceptance" in data
+    md = (tmp_path / "eval" / "report.md").read_text()
+    assert "| random_steps |" in md and "steady RMSE" in md
+    for name in ("random_steps.png", "emergency_brake.png", "training_curves.png"):
+        assert (tmp_path / "eval" / name).stat().st_size > 1000, name
+    # the safety layer of the trained config is part of the evaluated controller
+    assert rep["transforms"] == ["non_negative_reward", "safety_layer"]
+    assert data["overall"]["collisions"] == 0
+
+
+def test_evaluate_needs_exactly_one_policy(tmp_path):
+    cfg = compose(["experiment=ring_ppo"])
+    with pytest.raises(ValueError, match="exactly one"):
+        evaluate_and_report(cfg, tmp_path)
+
+
+def test_mt_eval_cli_with_a_classical_controller(tmp_path):
+    exe = Path(sys.executable).parent / "mt-eval"
+    if not exe.exists():
+        pytest.skip("mt-eval not installed")
+    out = subprocess.run([str(exe), "experiment=ring_lagrangian_ppo", "transforms=reward", "controller=idm",
+                          "eval.episodes=1", "eval.episode_seconds=10.0", "eval.profiles=[sine]",
+                          f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300, env=dict(os.environ))
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert (tmp_path / "run" / "eval" / "report.md").is_file()
+    assert "report:" in out.stdout

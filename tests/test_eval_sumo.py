@@ -1,0 +1,85 @@
+"""The evaluation harness on the SUMO backend: same report as torch, SafetyLayer guarantee in SUMO (speed mode 0)."""
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+
+pytest.importorskip("libsumo")
+
+from mixed_traffic.config import compose  # noqa: E402
+from mixed_traffic.evaluation.harness import METRICS  # noqa: E402
+from mixed_traffic.evaluation.sumo import evaluate_on_sumo, evaluate_on_torch_seeds  # noqa: E402
+
+S_MIN = 5.0  # transforms=safe: SafetyLayer(s_min=5, mode="stopping")
+
+
+def _keys(d, prefix=""):
+    out = set()
+    for k, v in d.items():
+        out.add(prefix + k)
+        if isinstance(v, dict) and k not in ("profiles",):
+            out |= _keys(v, prefix + k + ".")
+    return out
+
+
+def _full_throttle(env):
+    """Always +3 m/s^2: without the SafetyLayer it drives into its leader (~7 s in)."""
+    return TensorDictModule(lambda v: torch.full_like(v, 3.0), in_keys=[("cav", "speed")], out_keys=["action"])
+
+
+def test_sumo_report_matches_torch_and_safety_layer_holds():
+    # the ring_lagrangian_ppo chain: NonNegativeReward + SafetyLayer(s_min=5, "stopping"); SUMO speed mode 0
+    cfg = compose(["experiment=ring_lagrangian_ppo", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    kw = dict(policy_factory=_full_throttle, profiles=["random_steps"], episodes=1, seed=7, episode_seconds=20.0)
+    sumo, traces = evaluate_on_sumo(cfg, workers=0, **kw)  # in this process: no worker spawn
+    torch_rep, _ = evaluate_on_torch_seeds(cfg, **kw)
+
+    assert sumo["backend"] == "sumo" and sumo["speed_mode"] == 0 and sumo["episode_seeds"] == [7]
+    # same structure as the torch harness's report (the SUMO one adds backend details)
+    assert _keys(torch_rep) <= _keys(sumo)
+    pt, ps = torch_rep["profiles"]["random_steps"], sumo["profiles"]["random_steps"]
+    assert set(ps) == set(pt) and set(ps["metrics"]) == set(pt["metrics"]) == set(METRICS)
+    assert set(ps["per_episode"]) == set(pt["per_episode"])
+    assert traces["random_steps"].gap.shape == (1, 200)
+    assert ps["per_episode"]["length"] == [pytest.approx(20.0)]
+
+    # the SafetyLayer clipped most steps, and its guarantee holds in SUMO: no collision, gap >= s_min
+    assert sumo["overall"]["collisions"] == 0
+    assert ps["metrics"]["safety_clip_rate"]["mean"] > 0.5
+    assert sumo["overall"]["min_gap"] >= S_MIN - 1e-3
+    assert sumo["overall"]["min_gap"] < S_MIN + 3.0  # the layer, not the distance, kept it apart
+    # the same episode in both simulators
+    assert ps["metrics"]["min_gap"]["min"] == pytest.approx(pt["metrics"]["min_gap"]["min"], abs=0.3)
+
+
+def test_full_throttle_collides_without_the_safety_layer():
+    """Control for the test above (torch backend, cheap): the policy is unsafe on its own."""
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms.chain=[non_negative_reward]"])
+    rep, _ = evaluate_on_torch_seeds(cfg, policy_factory=_full_throttle, profiles=["random_steps"], episodes=1,
+                                     seed=7, episode_seconds=20.0)
+    assert rep["overall"]["collisions"] == 1
+
+
+@pytest.mark.slow
+def test_sumo_parallel_workers_give_the_in_process_episodes():
+    """ParallelEnv(2) (3 episodes: rounds of 2 + 1) reproduces the in-process episodes, seed by seed."""
+    cfg = compose(["experiment=ring_lagrangian_ppo", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    kw = dict(policy_factory=_full_throttle, profiles=["random_steps"], episodes=3, seed=11, episode_seconds=5.0)
+    par, _ = evaluate_on_sumo(cfg, workers=2, **kw)
+    seq, _ = evaluate_on_sumo(cfg, workers=0, **kw)
+    assert par["workers"] == 2 and par["episode_seeds"] == [11, 12, 13]
+    a, b = par["profiles"]["random_steps"]["per_episode"], seq["profiles"]["random_steps"]["per_episode"]
+    for k in ("min_gap", "return", "mean_abs_accel", "speed_rmse"):
+        assert a[k] == pytest.approx(b[k], rel=1e-5), k
+
+
+def test_mt_eval_backend_sumo_writes_the_same_report(tmp_path):
+    """`mt-eval controller=idm env.backend=sumo` goes through the SUMO evaluation."""
+    from mixed_traffic.evaluation import evaluate_and_report
+
+    cfg = compose(["experiment=ring_lagrangian_ppo", "controller=idm", "env.backend=sumo", "eval.episodes=1",
+                   "eval.episode_seconds=20", "eval.warmup_seconds=5", "eval.profiles=[emergency_brake]"])
+    rep = evaluate_and_report(cfg, tmp_path)
+    assert rep["backend"] == "sumo" and rep["speed_mode"] == 0
+    assert (tmp_path / "report.md").is_file() and (tmp_path / "report.json").is_file()
+    assert rep["overall"]["collisions"] == 0
