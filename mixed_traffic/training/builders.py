@@ -211,3 +211,23 @@ def make_qnet_policy(cfg: DictConfig, env: EnvBase) -> tuple[QValueActor, Tensor
     to_accel = TensorDictModule(DiscreteToContinuous(action_levels(env, n_bins)), in_keys=["action_onehot"],
                                 out_keys=["action"])
     return qactor, to_accel
+
+
+def make_collector(cfg: DictConfig, env: EnvBase, policy, *, resume: dict | None = None):
+    """The TorchRL ``Collector`` of a training loop and its batch arithmetic.
+
+    ``trainer.num_envs x trainer.rollout_len`` frames a batch, enough batches to reach
+    ``trainer.total_frames``; with ``trainer.desync_start`` (and not resuming) the rows
+    start at spread-out points of their episode clock. Returns
+    ``(collector, frames_per_batch, n_iterations)``.
+    """
+    from torchrl.collectors import Collector
+
+    tc = cfg.trainer
+    fpb = tc.num_envs * tc.rollout_len
+    n_iters = max(1, math.ceil(tc.total_frames / fpb))
+    collector = Collector(env, policy, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
+                          auto_register_policy_transforms=False)
+    if tc.get("desync_start", False) and resume is None:
+        desynchronize(env, cfg.seed)
+    return collector, fpb, n_iters

@@ -12,13 +12,11 @@ accelerations (one-hot ``"action_onehot"``, what DQNLoss reads) and maps it to `
 
 from __future__ import annotations
 
-import math
 import time
 
 import torch
 from omegaconf import DictConfig
 from tensordict.nn import TensorDictModule, TensorDictSequential
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, OneHot, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from torchrl.modules import MLP, EGreedyModule, QValueModule
@@ -29,7 +27,7 @@ from mixed_traffic.training.builders import (
     DiscreteToContinuous,
     _activation,
     action_levels,
-    desynchronize,
+    make_collector,
     make_transformed_env,
 )
 from mixed_traffic.training.metrics import batch_metrics
@@ -83,12 +81,7 @@ def train_off_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> di
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     buffer = ReplayBuffer(storage=LazyTensorStorage(tc.buffer_size), sampler=RandomSampler(),
                           batch_size=tc.batch_size)
-    fpb = tc.num_envs * tc.rollout_len
-    n_iters = max(1, math.ceil(tc.total_frames / fpb))
-    collector = Collector(env, policy, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
-                          auto_register_policy_transforms=False)
-    if tc.get("desync_start", False) and resume is None:
-        desynchronize(env, cfg.seed)
+    collector, fpb, n_iters = make_collector(cfg, env, policy, resume=resume)
     run = Run.start(cfg, out_dir, n_iters, fpb)
     start_iter, frames, n_updates = 0, 0, 0
     if resume is not None:
@@ -139,7 +132,7 @@ def train_off_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> di
             if (it + 1) % tc.log_every == 0 or it + 1 == n_iters:
                 run.log(m, frames, {"R/step": m["reward_per_step"], "eps": m["epsilon"], "coll": m["collisions"]})
             done_iters = it + 1
-            if run.end_iteration(done_iters, start_iter, lambda: payload()):
+            if run.end_iteration(done_iters, start_iter, payload):
                 stopped_early = True
                 break
     except KeyboardInterrupt:

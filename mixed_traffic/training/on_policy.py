@@ -14,17 +14,15 @@ One iteration, CleanRL style::
 from __future__ import annotations
 
 import functools
-import math
 import time
 
 import torch
 from omegaconf import DictConfig
-from torchrl.collectors import Collector
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from mixed_traffic.training import checkpoint as ck
-from mixed_traffic.training.builders import desynchronize, make_actor_critic, make_transformed_env
+from mixed_traffic.training.builders import make_actor_critic, make_collector, make_transformed_env
 from mixed_traffic.training.metrics import batch_metrics
 from mixed_traffic.training.run import Run
 
@@ -64,12 +62,7 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
     env = make_transformed_env(cfg, num_envs=tc.num_envs, seed=cfg.seed)
     actor, critic, loss_module, gae, penalty = build_ppo(cfg, env)
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
-    fpb = tc.num_envs * tc.rollout_len
-    n_iters = max(1, math.ceil(tc.total_frames / fpb))
-    collector = Collector(env, actor, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
-                          auto_register_policy_transforms=False)
-    if tc.get("desync_start", False) and resume is None:
-        desynchronize(env, cfg.seed)
+    collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
     run = Run.start(cfg, out_dir, n_iters, fpb)
     start_iter, frames = 0, 0
     if resume is not None:

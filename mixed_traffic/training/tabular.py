@@ -15,7 +15,6 @@ Exploration: epsilon-greedy, epsilon linear from ``eps_start`` to ``eps_end`` ov
 
 from __future__ import annotations
 
-import math
 import time
 
 import torch
@@ -23,10 +22,9 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.collectors import Collector
 
 from mixed_traffic.training import checkpoint as ck
-from mixed_traffic.training.builders import action_levels, desynchronize, make_transformed_env
+from mixed_traffic.training.builders import action_levels, make_collector, make_transformed_env
 from mixed_traffic.training.metrics import batch_metrics
 from mixed_traffic.training.run import Run
 
@@ -141,12 +139,7 @@ def train_tabular(cfg: DictConfig, out_dir, resume: dict | None = None) -> dict:
     torch.manual_seed(cfg.seed)
     env = make_transformed_env(cfg, num_envs=tc.num_envs, seed=cfg.seed)
     table, module, pol = make_table(cfg, env)
-    fpb = tc.num_envs * tc.rollout_len
-    n_iters = max(1, math.ceil(tc.total_frames / fpb))
-    collector = Collector(env, module, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
-                          auto_register_policy_transforms=False)
-    if tc.get("desync_start", False) and resume is None:
-        desynchronize(env, cfg.seed)
+    collector, fpb, n_iters = make_collector(cfg, env, module, resume=resume)
     run = Run.start(cfg, out_dir, n_iters, fpb)
     start_iter, frames = 0, 0
     if resume is not None:
@@ -183,7 +176,7 @@ def train_tabular(cfg: DictConfig, out_dir, resume: dict | None = None) -> dict:
             if (it + 1) % tc.log_every == 0 or it + 1 == n_iters:
                 run.log(m, frames, {"R/step": m["reward_per_step"], "eps": m["epsilon"], "states": m["states"]})
             done_iters = it + 1
-            if run.end_iteration(done_iters, start_iter, lambda: payload()):
+            if run.end_iteration(done_iters, start_iter, payload):
                 stopped_early = True
                 break
     except KeyboardInterrupt:
