@@ -124,7 +124,7 @@ def plot_training_curves(run_dir: str | Path, path: str | Path, *, title: str = 
     if not sc:
         return None
     panels = [("reward per step (task): batch / finished episodes", ["reward_per_step", "episode_reward_per_step"]),
-              ("episode return", ["episode_return"]),
+              ("finished-episode return (desync: lengths vary)", ["episode_return"]),
               ("policy loss", ["loss_objective", "loss"]), ("value loss", ["loss_critic"]),
               ("entropy", ["entropy"]), ("clip fraction", ["clip_fraction"]),
               ("lambda", ["lambda"]), ("violation / safety clip rate", ["mean_violation", "safety_clip_rate"]),
