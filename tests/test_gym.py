@@ -7,7 +7,7 @@ from torchrl.envs.utils import check_env_specs
 import mixed_traffic.envs.gym  # noqa: F401  (registers the ids)
 
 
-@pytest.mark.parametrize("gym_id", ["MixedTraffic/Ring-v0", "MixedTraffic/DeePLCC-v0"])
+@pytest.mark.parametrize("gym_id", ["MixedTraffic/Ring-v0", "MixedTraffic/DeePLCC-v0", "MixedTraffic/Intersection-v0"])
 def test_gym_api_and_torchrl_roundtrip(gym_id):
     env = gym.make(gym_id)
     obs, info = env.reset(seed=0)
