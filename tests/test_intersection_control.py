@@ -40,6 +40,19 @@ def test_nmpc_goes_when_clear_and_yields_to_a_close_agent():
     assert plan[-1] > 0.5  # and it still plans to go on once the agent has passed
 
 
+def test_nmpc_guard_keeps_a_waiting_ego_out_of_a_turning_agents_path():
+    """Test episode 21 (a yielding left-turner): without the near-term guard the cheapest plan,
+    which needs slack because the waiting ego is inside the inflated margin, drives into the
+    agent; with it the ego keeps waiting and crosses afterwards."""
+    ep = make_test_set(80, seed=2024).subset(torch.tensor([21]))
+    guarded = make_nmpc_policy()
+    res = evaluate_policy(guarded, test_set=ep)
+    assert bool(res.success[0]) and not bool(res.collision[0])
+    assert guarded.module.stats.n_guard > 0
+    res_off = evaluate_policy(make_nmpc_policy(guard_steps=0), test_set=ep)
+    assert bool(res_off.collision[0])
+
+
 def test_nmpc_policy_module_batch_and_bounds():
     policy = make_nmpc_policy(horizon=30)
     obs = torch.cat([_obs(), _obs(xa=1.6, vxa=-0.5), _obs(y=0.0, v=1.5, xa=-2.0)])

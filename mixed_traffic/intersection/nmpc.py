@@ -28,6 +28,10 @@ solution, a "go" guess at full speed and a "yield" guess stopping before the cro
 picks the best local solution, since the two homotopy classes (pass before / after the agent)
 are separate local minima that a single warm-started solve cannot jump between.
 
+A near-term guard (``guard_steps``, 1 s) checks a plan that needs slack: if it comes within the
+un-grown safety radius of a hypothesis in the next second, the solved plan (or full braking)
+with the largest near-term separation is taken instead (:meth:`NMPCController._guard`).
+
 Failed solves (IPOPT fails on every start) fall back to braking and are counted in
 :attr:`NMPCController.stats` (``fallbacks``); steps whose best plan needs slack are counted
 as ``slack_steps``.
@@ -86,6 +90,7 @@ class NMPCConfig:
     w_slack: float = 1e3
     slack_tol: float = 1e-2
     multistart: bool = True
+    guard_steps: int = 10  # near-term check of plans that need slack (0: off), see NMPCController._guard
     max_iter: int = 150
     y_goal: float = 1.25
 
@@ -99,6 +104,8 @@ class NMPCConfig:
         for name in ("dt", "a_max", "radius"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)!r} is invalid; allowed: > 0")
+        if not (isinstance(self.guard_steps, int) and self.guard_steps >= 0):
+            raise ValueError(f"guard_steps={self.guard_steps!r} is invalid; allowed: an integer >= 0")
         if not 0 < self.slack_decay <= 1:
             raise ValueError(f"slack_decay={self.slack_decay!r} is invalid; allowed: (0, 1]")
         for name in ("margin", "sigma_scale", "growth_cap", "lateral_spread", "tau_lat", "sigma_growth", "w_v", "w_a", "w_j", "w_y", "w_slack"):
@@ -116,12 +123,13 @@ class NMPCStats:
     n_ipopt_solves: int = 0
     n_ipopt_fail: int = 0
     n_slack: int = 0  # steps whose chosen plan needed slack (inside the inflated margin)
+    n_guard: int = 0  # steps where the near-term guard replaced the cheapest plan
 
     def summary(self) -> dict:
         t = np.asarray(self.solve_times) if self.solve_times else np.zeros(1)
         return {"steps": self.n_steps, "fallbacks": self.n_fallback, "ipopt_solves": self.n_ipopt_solves,
                 "ipopt_failures": self.n_ipopt_fail,
-                "slack_steps": self.n_slack, "solve_ms_mean": 1e3 * float(t.mean()),
+                "slack_steps": self.n_slack, "guard_steps": self.n_guard, "solve_ms_mean": 1e3 * float(t.mean()),
                 "solve_ms_p95": 1e3 * float(np.percentile(t, 95)), "solve_ms_max": 1e3 * float(t.max())}
 
 
@@ -307,6 +315,8 @@ class NMPCController(torch.nn.Module):
             # the slack penalty is part of J: a plan that keeps the margin always beats one that does not
             best = min(solved, key=lambda s: s["J"])
             self.stats.n_slack += int(not ok(best))
+            if not ok(best) and c.guard_steps > 0:
+                best = self._guard(best, solved, y0, v0, px, py, obs)
             a = float(best["A"][0])
             self._warm[row] = best
         else:
@@ -317,6 +327,36 @@ class NMPCController(torch.nn.Module):
         self.stats.n_steps += 1
         self.stats.solve_times.append(time.perf_counter() - t0)
         return a
+
+    def _clearance(self, plan, px, py, r0) -> float:
+        """Worst predicted separation minus ``r0`` over the first ``guard_steps`` steps of ``plan``."""
+        K = min(self.cfg.guard_steps, self.cfg.horizon)
+        d = np.hypot(EGO_X - px[:, :K], plan["Y"][None, 1:K + 1] - py[:, :K])
+        return float(d.min() - r0)
+
+    def _guard(self, best, solved, y0, v0, px, py, obs):
+        """Near-term safety check of a plan that needs slack (the ego is inside the inflated margin).
+
+        The slack trade-off sums violations over the whole horizon, so when waiting itself
+        violates the (grown) margin for a long time, a plan that drives *into* the agent's
+        near-term path can look cheaper (test episode 21: a yielding left-turner whose constant-
+        velocity prediction sweeps past the waiting ego). If the chosen plan comes within the
+        un-grown safety radius ``2R + margin + c |sigma|`` of any hypothesis in the next
+        ``guard_steps`` steps, take, among the solved plans and a full-braking stop plan, the one
+        with the largest near-term separation (counted in ``stats.n_guard``).
+        """
+        c = self.cfg
+        sx, sy = float(obs[6]), float(obs[7])
+        r0 = 2 * c.radius + c.margin + c.sigma_scale * math.hypot(sx, sy)
+        if self._clearance(best, px, py, r0) >= 0.0:
+            return best
+        stop = self._guess(y0, v0, "yield")
+        stop["J"] = np.inf
+        options = solved + [stop]
+        chosen = max(options, key=lambda s: (round(self._clearance(s, px, py, r0), 3), -s["J"]))
+        if chosen is not best:
+            self.stats.n_guard += 1
+        return chosen
 
     def _is_yielding(self, sol, py) -> bool:
         """True when the plan stops short of the crossing (so a 'go' start is worth a try)."""

@@ -50,8 +50,12 @@ from mixed_traffic.intersection.residual import BASE_KEY, ResidualNMPC
 
 METHODS = {
     # name: fixed knobs of the method
-    "lppo": {},
-    "lppo_bc": {"bc_coeff": 2.0, "bc_final_coeff": 1.0, "bc_episodes": 192, "bc_pretrain_steps": 600},
+    # hard_fraction / hard_start_x: share of close-start agents in the training bank (hard_start_bank);
+    # anticipation: weight of the training-only predicted-separation cost (anticipation_cost);
+    # oob_cost: training-only cost of leaving the road (so reversing out is no escape from the cost)
+    "lppo": {"hard_fraction": 0.5, "hard_start_x": (2.2, 2.6), "anticipation": 1.0, "oob_cost": 150.0},
+    "lppo_bc": {"bc_coeff": 2.0, "bc_final_coeff": 1.0, "bc_episodes": 384, "bc_pretrain_steps": 600,
+                "hard_fraction": 0.5, "hard_start_x": (2.2, 2.6), "anticipation": 1.0, "oob_cost": 150.0},
     "lppo_bff": {"bff_rho": 0.2, "bff_K": 0.5},
     "residual_mpc": {"residual_weight": 1.0, "residual_l2": 0.5},
 }
@@ -196,11 +200,55 @@ def method_transform(cfg: TrainConfig):
     return None
 
 
+def hard_start_bank(cfg: TrainConfig, bank_size: int = 2048):
+    """The training agent bank with close-start agents oversampled (``None`` if the method has none).
+
+    A fraction ``hard_fraction`` of the bank is replaced by agents (same training split and
+    behaviours, an independent seed stream) whose start ``x`` is drawn from ``hard_start_x``,
+    the near end of the start range: such an agent reaches the crossing ~1.5 s after the start,
+    so going at once collides and the policy must learn to wait. The test set is untouched.
+    """
+    frac = float(cfg.knobs.get("hard_fraction", METHODS[cfg.method].get("hard_fraction", 0.0)))
+    if frac <= 0.0:
+        return None
+    from mixed_traffic.intersection.agent_model import AgentModelParams, AgentTrajectories
+
+    n_hard = max(1, int(round(frac * bank_size)))
+    lo, hi = cfg.knobs.get("hard_start_x", METHODS[cfg.method].get("hard_start_x", (2.2, 2.8)))
+    normal = sample_agent_trajectories(bank_size - n_hard, seed=cfg.seed, split="train")
+    hard = sample_agent_trajectories(n_hard, seed=cfg.seed + 7919, split="train",
+                                     params=AgentModelParams(start_x=(float(lo), float(hi))))
+    return AgentTrajectories.cat([normal, hard])
+
+
 def make_train_env(cfg: TrainConfig, num_envs: int | None = None):
     kw = {"agent_split": "train", **cfg.env_overrides, "start_noise": cfg.start_noise}
+    bank = hard_start_bank(cfg)
+    if bank is not None:
+        kw["agent_trajectories"] = bank
     base = IntersectionEnv(batch_size=num_envs or cfg.num_envs, seed=cfg.seed, **kw)
     t = method_transform(cfg)
     return TransformedEnv(base, Compose(t)) if t is not None else TransformedEnv(base, Compose())
+
+
+def anticipation_cost(obs: torch.Tensor, *, horizon_s: float = 1.5, dt: float = 0.1, radius: float = 0.3328,
+                      mu: float = 200.0) -> torch.Tensor:
+    """Training-only cost on the *predicted* separation: ``mu max(0, (2R + |sigma|)^2 - d_min^2)``.
+
+    ``d_min`` is the smallest distance over the next ``horizon_s`` seconds when ego and perceived
+    agent both keep their current velocities; it charges driving towards a conflict before the
+    env's distance cost (which only sees the current separation) does. ``obs`` ``[..., 8]``.
+
+    >>> o = torch.tensor([[-0.5, 2.0, 1.5, 0.5, -1.0, 0.0, 0.05, 0.05]])
+    >>> bool(anticipation_cost(o) > 0), bool(anticipation_cost(o.index_fill(-1, torch.tensor([1]), 0.0)) == 0)
+    (True, True)
+    """
+    tau = torch.arange(0.0, horizon_s + 1e-9, dt, dtype=obs.dtype, device=obs.device)
+    y, v = obs[..., 0:1], obs[..., 1:2]
+    xa, ya, vxa, vya = obs[..., 2:3], obs[..., 3:4], obs[..., 4:5], obs[..., 5:6]
+    d2 = (0.5 - (xa + vxa * tau)) ** 2 + ((y + v * tau) - (ya + vya * tau)) ** 2
+    sig = obs[..., 6:8].norm(dim=-1, keepdim=True)
+    return mu * torch.clamp((2 * radius + sig) ** 2 - d2.min(dim=-1, keepdim=True).values, min=0.0)
 
 
 # ----------------------------------------------------------------------------- demonstrations
@@ -301,6 +349,16 @@ def train(cfg: TrainConfig) -> dict:
                "success": float(nxt["success"].squeeze(-1)[done].float().mean()) if n_done else float("nan"),
                "collision": float(nxt["collision"].squeeze(-1)[done].float().mean()) if n_done else float("nan"),
                "lambda": float(loss.lagrange_multiplier)}
+        w_ant = float(cfg.knobs.get("anticipation", METHODS[cfg.method].get("anticipation", 0.0)))
+        if w_ant > 0:  # training-only cost on the predicted separation (see anticipation_cost)
+            alive = ~nxt["done"]
+            extra = w_ant * anticipation_cost(nxt["observation"]) * alive
+            batch.set(("next", "cost"), nxt["cost"] + extra)
+            nxt = batch["next"]
+        oob_cost = float(cfg.knobs.get("oob_cost", METHODS[cfg.method].get("oob_cost", 0.0)))
+        if oob_cost > 0:  # leaving the road backwards must not be a cheap escape from the cost
+            batch.set(("next", "cost"), nxt["cost"] + oob_cost * nxt["out_of_bounds"].to(nxt["cost"].dtype))
+            nxt = batch["next"]
         lam = loss.update_lambda(batch)
         row["lambda_new"] = float(lam)
         batch.set(("next", "reward"), nxt["reward"] * cfg.reward_scale)
