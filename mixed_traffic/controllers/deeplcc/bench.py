@@ -57,17 +57,22 @@ def setup(preset: str, seed: int, hdv_model: str = "ovm"):
     return cfg, solver, {"precollect_s": t1 - t0, "factorise_s": t2 - t1}
 
 
+def time_warm_solves(solver, instances) -> list[float]:
+    """Seconds per solve along a trajectory, warm-started from the previous one (how the controller runs)."""
+    solver.reset_warm_start()
+    times = []
+    for args in instances:
+        t0 = time.perf_counter()
+        solver.solve(*args)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
 def bench_qp(instances: int = 12, preset: str = "dataset", seed: int = 0, repeats: int = 3) -> dict:
     """Median solve time of ours (cold, warm) vs cvxopt dense (default and tight tolerances), same instances."""
     cfg, solver, prep = setup(preset, seed)
     allinst = collect_instances(solver, cfg, seed=seed)
-    # warm-started solves along the trajectory (how the controller runs)
-    solver.reset_warm_start()
-    warm_ts = []
-    for args in allinst:
-        t0 = time.perf_counter()
-        solver.solve(*args)
-        warm_ts.append(time.perf_counter() - t0)
+    warm_ts = time_warm_solves(solver, allinst)
     picks = np.linspace(0, len(allinst) - 1, instances).round().astype(int)
     # make sure instances with binding constraints are included
     active = [i for i, a in enumerate(allinst) if solver.solve(*a, warm_start=False).active]
@@ -108,12 +113,7 @@ def bench_nnmpc(checkpoint: str | None = None, preset: str = "dataset", seed: in
     net = NNMPC.load(checkpoint) if checkpoint else NNMPC()
     cfg, solver, _ = setup(preset, seed)
     inst = collect_instances(solver, cfg, seconds=10.0, seed=seed)
-    solver.reset_warm_start()
-    qp_ts = []
-    for args in inst:
-        t0 = time.perf_counter()
-        solver.solve(*args)
-        qp_ts.append(time.perf_counter() - t0)
+    qp_ts = time_warm_solves(solver, inst)
     x1 = torch.as_tensor(np.concatenate(inst[len(inst) // 2])[None], dtype=torch.float32)
     xb = torch.as_tensor(np.stack([np.concatenate(a) for a in inst[:1024]]), dtype=torch.float32)
     with torch.inference_mode():
