@@ -282,6 +282,7 @@ class Config:
     checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
     controller: str | None = None  # mt-eval: a classical controller instead ("idm" or "ovm")
     resume: str | None = None  # path to a checkpoint (.pt) or a run directory
+    resume_override: bool = False  # resume even though budgets/hyper-parameters differ from the checkpoint's
     out_dir: str = "${hydra:runtime.output_dir}"
 
 

@@ -12,8 +12,11 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import torch
+
 from mixed_traffic.physics import IDMParams, OVMParams, ovm_equilibrium_gap
 from mixed_traffic.profiles import PROFILES, make_profile
+from mixed_traffic.validation import ConfigError, Real, is_real
 
 
 @dataclass
@@ -103,10 +106,40 @@ class TrafficScenario:
         return make_profile(self.profile, **kwargs)
 
     # -------------------------------------------------------------- validation
-    def validate(self) -> TrafficScenario:
-        def bad(name, value, allowed):
-            raise ValueError(f"scenario {self.name!r}: {name}={value!r} is invalid; allowed: {allowed}")
+    def _check_types(self) -> None:
+        """Every field holds a value of its annotated type; numbers are finite."""
+        for f in dataclasses.fields(self):
+            name, x, t = f.name, getattr(self, f.name), str(f.type).replace(" ", "")
+            if t in ("float", "int", "float|None", "int|None"):
+                Real(optional=t.endswith("None"), integer=t.startswith("int"))(name, x)
+            elif t == "str" and not isinstance(x, str):
+                raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "a string")
+            elif t == "bool" and not isinstance(x, bool):
+                raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "true or false")
+            elif t.startswith("tuple["):
+                integer = t.startswith("tuple[int")
+                if not isinstance(x, (tuple, list)) or (t.count(",") and not t.endswith("...]")
+                                                        and len(x) != t.count(",") + 1):
+                    raise ConfigError(name, f"{x!r} is invalid", f"a sequence of {t.count(',') + 1} numbers")
+                for v in x:
+                    Real(integer=integer)(name, v)
+            elif t == "dict":
+                if not isinstance(x, dict):
+                    raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "a mapping")
+                for k, v in x.items():
+                    if name == "hdv_params" or is_real(v):  # model parameters are numbers
+                        Real()(f"{name}.{k}", v)
 
+    def validate(self) -> TrafficScenario:
+        """Raise :class:`~mixed_traffic.validation.ConfigError` (a ValueError) naming the first bad field.
+
+        Types come from the field annotations (numbers finite, ints integral, strings
+        strings), so a new field is checked without new code; ranges follow.
+        """
+        def bad(name, value, allowed):
+            raise ConfigError(name, f"{value!r} is invalid (scenario {self.name!r})", str(allowed))
+
+        self._check_types()
         if self.road not in ("ring", "open"):
             bad("road", self.road, "'ring' or 'open'")
         if not self.dt > 0:
@@ -154,11 +187,24 @@ class TrafficScenario:
             bad("observation", self.observation, "'seed' or 'relative'")
         if self.profile not in PROFILES:
             bad("profile", self.profile, sorted(PROFILES))
-        self.make_profile()  # raises ValueError naming bad profile arguments
+        try:
+            prof = self.make_profile()
+            params = prof.sample(1, torch.Generator().manual_seed(0))
+            if not bool(torch.isfinite(prof.speed(torch.zeros(1), params)).all()):
+                raise ValueError("the head speed is not finite")
+        except ConfigError:
+            raise
+        except (ValueError, TypeError) as e:
+            raise ConfigError("profile_kwargs", f"{self.profile_kwargs!r} rejected by profile {self.profile!r} ({e})",
+                              "the profile's own arguments (see mixed_traffic.profiles)") from None
         if not 0 < self.s_min < self.s_max:
-            bad("s_min/s_max", (self.s_min, self.s_max), "0 < s_min < s_max")
-        if self.v_eq_window <= 0:
-            bad("v_eq_window", self.v_eq_window, "> 0")
+            bad("s_min", (self.s_min, self.s_max), "0 < s_min < s_max")
+        for name in ("weight_v", "weight_s", "weight_u", "v_star"):
+            if getattr(self, name) < 0:
+                bad(name, getattr(self, name), ">= 0")
+        for name in ("v_eq_window", "spacing_clip", "v_dev_max", "s_star"):
+            if getattr(self, name) <= 0:
+                bad(name, getattr(self, name), "> 0")
         return self
 
 
@@ -182,15 +228,14 @@ PRESETS = {"ring": _ring, "deeplcc": _deeplcc}
 def get_scenario(name: str, **overrides) -> TrafficScenario:
     """A validated preset with ``overrides`` applied (unknown fields raise ValueError)."""
     if name not in PRESETS:
-        raise ValueError(f"scenario: unknown preset {name!r}; allowed: {sorted(PRESETS)}")
+        raise ConfigError("scenario", f"unknown preset {name!r}", str(sorted(PRESETS)))
     sc = PRESETS[name]()
     allowed = {f.name for f in dataclasses.fields(sc)}
     unknown = set(overrides) - allowed
     if unknown:
-        raise ValueError(f"scenario {name!r}: unknown override(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
-    if "cav_indices" in overrides:
-        overrides["cav_indices"] = tuple(overrides["cav_indices"])
-    for key in ("head_accel_bounds", "cav_accel_bounds"):
-        if key in overrides:
+        raise ConfigError(sorted(unknown)[0], f"unknown override(s) {sorted(unknown)} (not fields of scenario {name!r})",
+                          str(sorted(allowed)))
+    for key in ("cav_indices", "head_accel_bounds", "cav_accel_bounds"):
+        if isinstance(overrides.get(key), list):
             overrides[key] = tuple(overrides[key])
     return dataclasses.replace(sc, **overrides).validate()

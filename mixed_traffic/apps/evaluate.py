@@ -13,15 +13,29 @@ import hydra
 from omegaconf import DictConfig
 
 from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
+from mixed_traffic.validation import ConfigError, guarded, run_cli, validate_config
 
 register_configs()
 
 
-@hydra.main(config_path=CONFIG_PATH, config_name=CONFIG_NAME, version_base="1.3")
-def main(cfg: DictConfig) -> None:
+def check_eval_overrides(cfg: DictConfig, overrides: list[str]) -> None:
+    """A checkpoint is evaluated on the env it was trained on: refuse ``env.*`` overrides (except the backend)."""
+    if not cfg.get("checkpoint"):
+        return
+    for o in overrides:
+        key = o.split("=", 1)[0].lstrip("+~")
+        if (key == "env" or key.startswith("env.")) and key != "env.backend":
+            raise ConfigError(key, "a checkpoint is evaluated on the env and transforms it was trained with "
+                              "(they travel inside it)", "env.backend=torch|sumo and the eval.* settings "
+                              "(e.g. eval.hdv_param_noise, eval.episode_seconds, eval.profiles)")
+
+
+def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
     from mixed_traffic.evaluation import evaluate_and_report
     from mixed_traffic.training.run import set_threads
 
+    validate_config(cfg)
+    check_eval_overrides(cfg, list(overrides))
     set_threads(cfg.threads)
     out = Path(cfg.out_dir) / "eval"
     rep = evaluate_and_report(cfg, out)
@@ -31,6 +45,24 @@ def main(cfg: DictConfig) -> None:
     print(f"collisions {rep['overall']['collisions']}/{rep['overall']['episodes']} episodes, "
           f"min gap {rep['overall']['min_gap']:.2f} m, max head gap {rep['overall']['max_head_gap']:.2f} m, "
           f"steady RMSE {acc['steady_speed_rmse']:.3f} m/s, pass={acc['pass']}")
+    return rep
+
+
+@hydra.main(config_path=CONFIG_PATH, config_name=CONFIG_NAME, version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    guarded(lambda: run_eval(cfg, list(HydraConfig.get().overrides.task)), "mt-eval")
+
+
+def main(argv: list[str] | DictConfig | None = None):
+    """Console entry point: bad input gives ``error: <field>: ...`` and exit status 2 (``MT_DEBUG=1``: traceback).
+
+    Given a composed config instead of an argv (as a ``@hydra.main`` function), runs it directly.
+    """
+    if isinstance(argv, DictConfig):
+        return run_eval(argv)
+    run_cli(_hydra_main, "mt-eval", argv)
 
 
 if __name__ == "__main__":

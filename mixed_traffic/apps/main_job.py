@@ -17,6 +17,7 @@ import hydra
 from omegaconf import DictConfig, open_dict
 
 from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
+from mixed_traffic.validation import guarded, run_cli
 
 register_configs()
 DEFAULT_EXPERIMENT = "ring_lagrangian_ppo"
@@ -63,13 +64,20 @@ def run_main(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=CONFIG_PATH, config_name=CONFIG_NAME, version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    run_main(cfg)
+    guarded(lambda: run_main(cfg), "mt-main")
 
 
-def main() -> None:
-    if not any(a.startswith(("experiment=", "+experiment=")) for a in sys.argv[1:]):
-        sys.argv.insert(1, f"experiment={DEFAULT_EXPERIMENT}")
-    _hydra_main()
+def main(argv: list[str] | DictConfig | None = None):
+    """Console entry point: bad input gives ``error: <field>: ...`` and exit status 2 (``MT_DEBUG=1``: traceback).
+
+    Given a composed config instead of an argv (as a ``@hydra.main`` function), runs it directly.
+    """
+    if isinstance(argv, DictConfig):
+        return run_main(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not any(a.startswith(("experiment=", "+experiment=")) for a in argv):
+        argv.insert(0, f"experiment={DEFAULT_EXPERIMENT}")
+    run_cli(_hydra_main, "mt-main", argv)
 
 
 if __name__ == "__main__":

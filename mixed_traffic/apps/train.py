@@ -13,12 +13,30 @@ import hydra
 from omegaconf import DictConfig
 
 from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
+from mixed_traffic.validation import guarded, run_cli
 
 register_configs()
 
 
 @hydra.main(config_path=CONFIG_PATH, config_name=CONFIG_NAME, version_base="1.3")
-def main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float:
+    return guarded(lambda: run_train(cfg), "mt-train")
+
+
+def main(argv: list[str] | DictConfig | None = None):
+    """Console entry point: bad input gives ``error: <field>: ...`` and exit status 2 (``MT_DEBUG=1``: traceback).
+
+    Given a composed config instead of an argv (as a ``@hydra.main`` function), runs it directly.
+    """
+    if isinstance(argv, DictConfig):
+        return run_train(argv)
+    run_cli(_hydra_main, "mt-train", argv)
+
+
+def run_train(cfg: DictConfig) -> float:
+    from mixed_traffic.validation import validate_config
+
+    validate_config(cfg)
     if cfg.env.scenario == "intersection":  # the intersection methods have their own loop
         from mixed_traffic.intersection.train_lppo import run_experiment
 

@@ -32,8 +32,10 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
         raise ValueError(f"scenario: unknown {scenario!r}; allowed: {SCENARIOS}")
     if backend not in BACKENDS:
         raise ValueError(f"backend: unknown {backend!r}; allowed: {list(BACKENDS)}")
-    if not (isinstance(batch_size, int) and batch_size >= 1):
-        raise ValueError(f"batch_size={batch_size!r} is invalid; allowed: an integer >= 1")
+    if not (isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1):
+        raise ValueError(f"batch_size: {batch_size!r} is invalid; allowed: an integer >= 1")
+    if seed is not None and not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
+        raise ValueError(f"seed: {seed!r} is invalid; allowed: an integer in [0, 2**63) or None")
     if scenario == "intersection":
         if backend != "torch":
             raise ValueError("backend: the intersection scenario has only the 'torch' backend")

@@ -147,7 +147,8 @@ class SumoRingEnv(EnvBase):
         net_file: an existing ring network (from :func:`~mixed_traffic.envs.sumo_net.build_ring_network`)
             instead of generating one.
         run_dir: folder for the generated files (default: a temporary folder removed on close).
-        sumo_args: extra SUMO command-line options (e.g. ``["--seed", "3"]``).
+        sumo_args: extra SUMO command-line options (e.g. ``["--seed", "3"]``); one of the
+            defaults set here (``--seed``, ``--collision.action`` ...) is replaced, not repeated.
         netconvert: path of the netconvert binary (default: eclipse-sumo's).
         **overrides: scenario fields (``ring_length``, ``n_vehicles``, ``cav_indices``,
             ``hdv_params``, ``dt``, ``episode_seconds``, ``profile``, bounds, ...).
@@ -281,7 +282,10 @@ class SumoRingEnv(EnvBase):
                "--time-to-teleport", "-1", "--seed", "0"]
         if sc.integration == "ballistic":
             cmd += ["--step-method.ballistic", "true"]
-        return cmd + list(self.sumo_args)
+        # an option given in sumo_args replaces the default of the same name (SUMO refuses a repeat)
+        user = {a.lstrip("-") for a in self.sumo_args if a.startswith("-")}
+        pairs = [cmd[i:i + 2] for i in range(0, len(cmd), 2)]
+        return [t for k, v in pairs if k.lstrip("-") not in user for t in (k, v)] + list(self.sumo_args)
 
     def _vehicle_specs(self) -> list[VehicleSpec]:
         sc = self.scenario

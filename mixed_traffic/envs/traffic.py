@@ -105,6 +105,15 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     return torch.stack(feats, dim=-1).flatten(-2)
 
 
+def check_action_finite(action: Tensor) -> None:
+    """A NaN/inf action would leave its row's state NaN for the rest of the episode: refuse it."""
+    finite = torch.isfinite(action)
+    if not bool(finite.all()):
+        rows = (~finite).reshape(finite.shape[0], -1).any(-1).nonzero().flatten().tolist()
+        raise ValueError(f"action: non-finite values in row(s) {rows[:10]}; allowed: finite accelerations in m/s^2 "
+                         "(clipped to cav_accel_bounds)")
+
+
 # ----------------------------------------------------------------------------- the env
 class TrafficEnv(EnvBase):
     """Batched ring/open-road car-following environment (see the module docstring).
@@ -243,6 +252,7 @@ class TrafficEnv(EnvBase):
         if action.shape != (self.batch_size[0], sc.n_cav):
             raise ValueError(f"action: shape {tuple(action.shape)} is invalid; allowed: "
                              f"{(self.batch_size[0], sc.n_cav)} (batch, n_cav) accelerations in m/s^2")
+        check_action_finite(action)
         pos, vel = self.pos, self.vel
         gap = self._gaps(pos)
         v_lead = torch.roll(vel, 1, dims=-1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -14,7 +15,11 @@ def checkpoint_config(path: str | Path) -> tuple[DictConfig, dict]:
     p = Path(path)
     if p.is_dir() and (p / "final.pt").is_file():
         p = p / "final.pt"
-    state = load_checkpoint(p)
+    state = load_checkpoint(p, field="checkpoint")
+    if "iteration" in state:  # a periodic checkpoint: say so, the numbers are not the final policy's
+        total = state["config"].get("trainer", {}).get("total_frames", "?")
+        print(f"note: checkpoint={str(path)!r} is a mid-run checkpoint (iteration {state['iteration']}, "
+              f"{state.get('frames', '?')} of {total} frames): the run has no final.pt yet", file=sys.stderr)
     return OmegaConf.create(state["config"]), state
 
 

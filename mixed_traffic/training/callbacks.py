@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -73,10 +74,26 @@ def summarize_sweep(sweep_dir: str | Path) -> dict:
     return out
 
 
+FAILED = "job_failed.json"
+
+
+def failed_jobs(sweep_dir: str | Path) -> list[dict]:
+    """The jobs of a sweep that raised: ``{"job": dir, "overrides": [...], "error": "..."}``."""
+    return [json.loads(f.read_text()) for f in sorted(Path(sweep_dir).glob(f"**/{FAILED}"))]
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def write_sweep_summary(sweep_dir: str | Path, columns: tuple[str, ...] | None = None) -> Path:
     sweep_dir = Path(sweep_dir)
     summary = summarize_sweep(sweep_dir)
-    (sweep_dir / "sweep_summary.json").write_text(json.dumps(summary, indent=2))
+    failed = failed_jobs(sweep_dir)
+    _atomic_write(sweep_dir / "sweep_summary.json", json.dumps(summary, indent=2))
+    _atomic_write(sweep_dir / "sweep_failed.json", json.dumps(failed, indent=2))
     cols = columns or ("train.reward_per_step", "train.episode_return", "train.collisions", "train.lambda",
                        "train.wall_seconds", "eval.collisions", "eval.min_gap", "eval.speed_rmse_steady")
     lines = ["# Sweep summary (mean ± std over seeds)", "", f"sweep: `{sweep_dir}`", "",
@@ -88,13 +105,38 @@ def write_sweep_summary(sweep_dir: str | Path, columns: tuple[str, ...] | None =
             st = g["metrics"].get(c)
             cells.append(f"{st['mean']:.4g} ± {st['std']:.2g}" if st else "–")
         lines.append(f"| `{key}` | {g['seeds']} | " + " | ".join(cells) + " |")
+    if failed:
+        lines += ["", f"## Failed jobs ({len(failed)}, not in the table)", ""]
+        lines += [f"- `{' '.join(f['overrides'])}`: {f['error']}" for f in failed]
     md = sweep_dir / "sweep_summary.md"
-    md.write_text("\n".join(lines) + "\n")
+    _atomic_write(md, "\n".join(lines) + "\n")
     return md
 
 
 class SweepSummary(Callback):
-    """Writes ``sweep_summary.{json,md}`` in the sweep directory when a multirun ends."""
+    """Writes ``sweep_summary.{json,md}`` in the sweep directory after every job and when a multirun ends.
+
+    Hydra does not call ``on_multirun_end`` when a job failed, so the summary is also
+    rewritten after each job (``on_job_end``); a failed job is recorded in its directory
+    (``job_failed.json``) and listed in ``sweep_failed.json`` and the Markdown summary.
+    """
+
+    def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
+        from hydra.core.utils import JobStatus
+        from hydra.types import RunMode
+
+        if config.hydra.mode != RunMode.MULTIRUN:
+            return
+        sweep_dir = Path(config.hydra.sweep.dir)
+        job_dir = Path(config.hydra.runtime.output_dir)
+        if job_return.status == JobStatus.FAILED:
+            err = job_return._return_value
+            job_dir.mkdir(parents=True, exist_ok=True)
+            _atomic_write(job_dir / FAILED, json.dumps({
+                "job": str(job_dir), "overrides": list(config.hydra.overrides.task),
+                "error": f"{type(err).__name__}: {err}"}, indent=2))
+        if sweep_dir.is_dir():
+            write_sweep_summary(sweep_dir)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)

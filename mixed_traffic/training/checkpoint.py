@@ -10,7 +10,9 @@ checkpoint intact.
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 from pathlib import Path
 
 import torch
@@ -20,12 +22,55 @@ from torchrl.envs import EnvBase, TransformedEnv
 LATEST = "latest.pt"
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_orphans(path: str | Path) -> list[Path]:
+    """Remove ``.<name>.tmp<pid>`` files next to ``path`` left by a writer that no longer runs (a kill)."""
+    path = Path(path)
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    for tmp in path.parent.glob(f".{path.name}.tmp*"):
+        pid = tmp.name.rsplit(".tmp", 1)[-1]
+        if pid.isdigit() and int(pid) != os.getpid() and _pid_alive(int(pid)):
+            continue  # another live process is writing it
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
 def atomic_save(obj, path: str | Path) -> Path:
+    """``torch.save`` to a temporary file in the same directory, then ``os.replace``.
+
+    The temporary is removed when the write fails (a full disk: ``OSError`` naming the
+    file, the previous version untouched); one orphaned by a kill is removed by the next
+    write of the same file.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_orphans(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+            raise OSError(errno.ENOSPC, f"no space left on the device while writing it "
+                          f"({shutil.disk_usage(path.parent).free} bytes free; the previous version is intact, "
+                          "the partial file was removed)", str(path)) from None
+        raise
     return path
 
 
@@ -78,18 +123,36 @@ def load_collector_state(collector, state: dict) -> None:
     collector._carrier = state["carrier"].clone()
 
 
-def resolve_checkpoint(path: str | Path) -> Path:
+CKPT_ALLOWED = "a checkpoint written by mt-train (<run>/final.pt, <run>/checkpoints/latest.pt) or its run directory"
+
+
+def resolve_checkpoint(path: str | Path, field: str = "resume") -> Path:
     """A checkpoint file, or a run directory (its ``checkpoints/latest.pt``)."""
+    from mixed_traffic.validation import ConfigError
+
     p = Path(path).expanduser()
     if p.is_dir():
         for cand in (p / "checkpoints" / LATEST, p / LATEST):
             if cand.is_file():
                 return cand
-        raise FileNotFoundError(f"resume={str(path)!r}: no checkpoints/{LATEST} in that directory")
+        raise FileNotFoundError(f"{field}: no checkpoints/{LATEST} in the directory {str(path)!r}; allowed: {CKPT_ALLOWED}")
     if not p.is_file():
-        raise FileNotFoundError(f"resume={str(path)!r}: no such checkpoint file or run directory")
+        raise FileNotFoundError(f"{field}: no such checkpoint file or run directory {str(path)!r}; allowed: {CKPT_ALLOWED}")
+    if p.stat().st_size == 0:
+        raise ConfigError(field, f"{str(p)!r} is empty (0 bytes)", CKPT_ALLOWED)
     return p
 
 
-def load_checkpoint(path: str | Path) -> dict:
-    return torch.load(resolve_checkpoint(path), map_location="cpu", weights_only=False)
+def load_checkpoint(path: str | Path, field: str = "resume") -> dict:
+    """Load a checkpoint; a missing, empty, truncated or foreign file is a clear error naming it."""
+    from mixed_traffic.validation import ConfigError
+
+    p = resolve_checkpoint(path, field)
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as e:  # truncated zip, not a torch file, unpickling errors
+        raise ConfigError(field, f"{str(p)!r} cannot be read as a checkpoint ({type(e).__name__}: "
+                          f"{str(e).splitlines()[0] if str(e) else ''})", CKPT_ALLOWED) from None
+    if not isinstance(state, dict) or "config" not in state or not isinstance(state["config"], dict):
+        raise ConfigError(field, f"{str(p)!r} is not a mixed-traffic checkpoint (no run config inside)", CKPT_ALLOWED)
+    return state

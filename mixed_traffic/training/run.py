@@ -23,11 +23,19 @@ def make_logger(cfg: DictConfig, out_dir: Path):
 
         return CSVLogger(exp_name=cfg.name, log_dir=str(log_dir))
     if lc.backend == "wandb":
+        import uuid
+
         from torchrl.record.loggers import WandbLogger
 
         log_dir.mkdir(parents=True, exist_ok=True)
+        # one wandb run per training run: the id is kept in the run directory, so a resume continues it
+        id_file = log_dir / "wandb_run_id"
+        run_id = id_file.read_text().strip() if id_file.is_file() else uuid.uuid4().hex[:12]
+        id_file.write_text(run_id)
+        # log_env_packages=False: TorchRL would otherwise replace the run config's `env` with package metadata
         return WandbLogger(exp_name=f"{cfg.name}_seed{cfg.seed}", offline=lc.mode == "offline", save_dir=str(log_dir),
-                           project=lc.project, config=OmegaConf.to_container(cfg, resolve=True))
+                           project=lc.project, id=run_id, log_env_packages=False,
+                           config=OmegaConf.to_container(cfg, resolve=True))
     if lc.backend == "none":
         return None
     raise ValueError(f"logger.backend={lc.backend!r} is invalid; allowed: 'csv', 'wandb', 'none'")
@@ -37,6 +45,24 @@ def scalar_dir(out_dir: str | Path, cfg: DictConfig | None = None) -> Path | Non
     """Where the CSV logger of a run wrote its scalars (``<run>/logs/<name>/scalars``)."""
     hits = sorted(Path(out_dir).glob("logs/*/scalars"))
     return hits[0] if hits else None
+
+
+def trim_scalars(out_dir: str | Path, max_step: int) -> int:
+    """Drop CSV scalar rows logged after step ``max_step`` (a resume logs those steps again).
+
+    Each ``<run>/logs/<name>/scalars/<key>.csv`` holds ``step,value`` lines; the file is
+    rewritten atomically. Returns the number of rows removed.
+    """
+    removed = 0
+    for f in Path(out_dir).glob("logs/*/scalars/*.csv"):
+        lines = f.read_text().splitlines(keepends=True)
+        keep = [ln for ln in lines if not ln.strip() or float(ln.split(",", 1)[0]) <= max_step]
+        if len(keep) != len(lines):
+            removed += len(lines) - len(keep)
+            tmp = f.with_name(f".{f.name}.tmp")
+            tmp.write_text("".join(keep))
+            tmp.replace(f)
+    return removed
 
 
 @dataclass
@@ -58,7 +84,8 @@ class Run:
         out.mkdir(parents=True, exist_ok=True)
         run = cls(cfg=cfg, out_dir=out, total_iters=total_iters, frames_per_batch=frames_per_batch)
         run.logger = make_logger(cfg, out)
-        (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        if not (cfg.get("resume") and (out / "config.yaml").exists()):  # a resume keeps the run's own config
+            (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
         return run
 
     @property

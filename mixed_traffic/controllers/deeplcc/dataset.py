@@ -50,6 +50,7 @@ from mixed_traffic.controllers.deeplcc.hankel import HANKEL_KEYS
 from mixed_traffic.controllers.deeplcc.platoon import PlatoonConfig
 from mixed_traffic.controllers.deeplcc.precollect import precollect
 from mixed_traffic.controllers.deeplcc.qp import PRESETS, DeepLCCSolver, QPParams
+from mixed_traffic.validation import ConfigError, Real, is_real
 
 #: scenario kinds of the mix -> how an episode of that kind is built
 MIX_KINDS = ("random1", "random3", "random5", "brake", "sine3", "sine5")
@@ -80,7 +81,11 @@ class DatasetConfig:
 
     def validate(self) -> DatasetConfig:
         def bad(name, allowed):
-            raise ValueError(f"dataset config: {name}={getattr(self, name)!r} is invalid; allowed: {allowed}")
+            raise ConfigError(name, f"{getattr(self, name)!r} is invalid", str(allowed))
+
+        for f in dataclasses.fields(self):
+            if f.type in ("float", "int"):
+                Real(integer=f.type == "int")(f.name, getattr(self, f.name))
 
         if not (isinstance(self.episodes, int) and self.episodes >= 1):
             bad("episodes", "an integer >= 1")
@@ -105,11 +110,13 @@ class DatasetConfig:
         mix = dict(self.mix)
         unknown = set(mix) - set(MIX_KINDS)
         if unknown:
-            raise ValueError(f"dataset config: mix has unknown kind(s) {sorted(unknown)}; allowed: {list(MIX_KINDS)}")
-        if any(not float(v) >= 0 for v in mix.values()) or not sum(map(float, mix.values())) > 0:
+            raise ConfigError("mix", f"unknown kind(s) {sorted(unknown)}", str(list(MIX_KINDS)))
+        if any(not (is_real(v) and 0 <= v < float("inf")) for v in mix.values()) or not sum(mix.values()) > 0:
             bad("mix", "non-negative fractions with a positive sum")
+        if not (len(self.brake_start) == 2 and all(is_real(x) for x in self.brake_start)):
+            bad("brake_start", "(lo, hi) with 0 <= lo <= hi")
         lo, hi = self.brake_start
-        if not 0 <= lo <= hi:
+        if not 0 <= lo <= hi < float("inf"):
             bad("brake_start", "(lo, hi) with 0 <= lo <= hi")
         self.qp_params()
         return self
@@ -316,6 +323,17 @@ def validate_dataset(data, check_values: bool = True) -> dict:
     absent = [f for f in QP_FIELDS if f not in qp]
     if absent:
         raise ValueError(f"dataset: key 'qp' lacks field(s) {absent}; expected {list(QP_FIELDS)}")
+    # the metadata and the solutions must agree with the stored QP settings
+    for i, name in ((1, "s_star"), (4, "lambda_g"), (5, "lambda_y")):
+        if not np.isclose(float(md[i]), float(qp[name]), rtol=1e-9, atol=0.0):
+            raise ValueError(f"dataset: key 'metadata' holds {name}={float(md[i])!r} but key 'qp' says {qp[name]!r}; "
+                             "expected the same value (metadata = [v_star, s_star, t_ini, N, lambda_g, lambda_y])")
+    u_opt = data["u_opt"]
+    if check_values and not isinstance(u_opt, ArrayInfo) and N:
+        lo, hi = float(qp["dcel_max"]), float(qp["acel_max"])
+        if u_opt.min() < lo - 1e-6 or u_opt.max() > hi + 1e-6:
+            raise ValueError(f"dataset: key 'u_opt' holds values in [{u_opt.min():g}, {u_opt.max():g}]; expected "
+                             f"QP solutions within the stored bounds [dcel_max, acel_max] = [{lo:g}, {hi:g}] m/s^2")
     return {"N": N, "m": m, "p": p, "t_ini": t_ini, "n": n, "episodes": E, "columns": M}
 
 
@@ -324,16 +342,26 @@ def load_dataset(path: str | os.PathLike, hankel: bool = True) -> dict:
 
     With ``hankel=False`` the (large) Hankel arrays are not read, only their shapes checked.
     """
-    with np.load(os.fspath(path), allow_pickle=False) as z:
-        data = {}
-        for k in z.keys():
-            if hankel or k not in HANKEL_KEYS:
-                data[k] = z[k]
-            else:
-                data[k] = ArrayInfo(*_npz_header(z, k))
-    dims = validate_dataset(data)
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"dataset: no such file {path!r}; allowed: a .npz written by mt-dataset")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {}
+            for k in z.keys():
+                if hankel or k not in HANKEL_KEYS:
+                    data[k] = z[k]
+                else:
+                    data[k] = ArrayInfo(*_npz_header(z, k))
+    except Exception as e:  # BadZipFile, EOFError, a pickled or truncated member ...
+        raise ValueError(f"dataset: {path!r} cannot be read ({type(e).__name__}: {e}); allowed: a complete .npz "
+                         "written by mt-dataset (regenerate it)") from None
+    try:
+        dims = validate_dataset(data)
+        data["qp_params"] = QPParams(**json.loads(str(data["qp"])))
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{path}: {e}") from None
     data["dims"] = dims
-    data["qp_params"] = QPParams(**json.loads(str(data["qp"])))
     return data
 
 

@@ -65,6 +65,26 @@ class HankelData:
     def columns(self) -> int:
         return self.Up.shape[1]
 
+    def check_excitation(self) -> HankelData:
+        """Refuse data DeeP-LCC cannot predict with: non-finite values, or inputs not persistently exciting.
+
+        The behavioural model needs ``[Up; Ep; Uf; Ef]`` of full row rank ``(m + 1)(t_ini + n)``
+        (Willems' fundamental lemma); without it the QP's KKT matrix is singular and every
+        solve returns NaN.
+        """
+        for k in HANKEL_KEYS:
+            if not np.all(np.isfinite(getattr(self, k))):
+                raise ValueError(f"hankel data: {k} contains non-finite values; allowed: finite trajectories")
+        ue = np.vstack([self.Up, self.Ep, self.Uf, self.Ef])
+        rows = ue.shape[0]
+        rank = int(np.linalg.matrix_rank(ue)) if ue.shape[1] >= rows else min(ue.shape)
+        if rank < rows:
+            raise ValueError(
+                f"hankel data: [Up; Ep; Uf; Ef] has rank {rank} < {rows} rows, so the inputs are not persistently "
+                f"exciting of order t_ini + n = {self.t_ini + self.n}; allowed: pre-collected CAV inputs and head "
+                f"perturbations that vary (e.g. random), with at least {rows} columns (got {ue.shape[1]})")
+        return self
+
     def as_dict(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in HANKEL_KEYS}
 

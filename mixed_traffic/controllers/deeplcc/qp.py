@@ -165,6 +165,8 @@ class QPStats:
     iterations: int = 0
     dual_fallbacks: int = 0  # active-set loop did not converge; reduced dual solved with cvxopt
     safe_actions: int = 0  # no verified solution; the safe action was returned
+    invalid_inputs: int = 0  # NaN/inf in uini/yini/eini: the safe action (0 m/s^2) was returned without solving
+    infeasible_states: int = 0  # the measured CAV spacing is already outside [spacing_min, spacing_max]
     max_active: int = 0
     active_hist: dict = field(default_factory=dict)
 
@@ -176,9 +178,12 @@ class QPStats:
 class QPResult:
     u: np.ndarray  # first control action (m,)
     u_all: np.ndarray  # whole optimal input sequence (m*N,)
-    status: str  # "optimal", "dual_fallback" or "safe_action"
+    status: str  # "optimal", "dual_fallback", "safe_action" or "invalid_input"
     active: tuple  # ((row, sign), ...) active inequality rows
     iterations: int
+    # the measured spacing of a CAV is already outside [spacing_min, spacing_max]: the constraint
+    # cannot hold from the current state (the solution is still returned, flagged and counted)
+    infeasible_state: bool = False
 
 
 class DeepLCCSolver:
@@ -190,6 +195,7 @@ class DeepLCCSolver:
 
     def __init__(self, h: HankelData, params: QPParams, *, max_iter: int = 60, tol: float = 1e-9, refine: int = 2):
         self.params, self.max_iter, self.tol = params, max_iter, tol
+        h.check_excitation()
         qp = build_qp(h, params)
         self.qp = qp
         M, nb, na, ny = qp.H.shape[0], qp.B.shape[0], qp.A.shape[0], qp.Fy.shape[1]
@@ -268,9 +274,23 @@ class DeepLCCSolver:
         return z
 
     def solve(self, uini, yini, eini, warm_start: bool = True, warm: tuple | None = None) -> QPResult:
-        """Solve one instance; ``warm`` overrides the stored warm-start active set."""
-        a0 = self._a0(uini, yini, eini)
+        """Solve one instance; ``warm`` overrides the stored warm-start active set.
+
+        Non-finite inputs are not solved: the safe action ``u = 0`` (hold speed) is returned
+        with status ``"invalid_input"`` and counted (``stats.invalid_inputs``, ``stats.safe_actions``).
+        """
         self.stats.solves += 1
+        uini, yini, eini = np.ravel(uini), np.ravel(yini), np.ravel(eini)
+        if not (np.all(np.isfinite(uini)) and np.all(np.isfinite(yini)) and np.all(np.isfinite(eini))):
+            self.stats.invalid_inputs += 1
+            self.stats.safe_actions += 1
+            self._warm = ()
+            u_all = np.clip(np.zeros(self.n_u), self.params.dcel_max, self.params.acel_max)
+            return QPResult(u=u_all[: self.m].copy(), u_all=u_all, status="invalid_input", active=(), iterations=0)
+        infeasible = self._state_outside(yini)
+        if infeasible:
+            self.stats.infeasible_states += 1
+        a0 = self._a0(uini, yini, eini)
         if warm is not None:
             self._warm = tuple(warm)
         out = self._active_set(a0, self._warm if warm_start else ())
@@ -283,17 +303,25 @@ class DeepLCCSolver:
             self.stats.max_active = max(self.stats.max_active, len(W))
             self.stats.active_hist[len(W)] = self.stats.active_hist.get(len(W), 0) + 1
             u_all = z[: self.n_u]
-            return QPResult(u=u_all[: self.m].copy(), u_all=u_all.copy(), status="optimal", active=W, iterations=it)
+            return QPResult(u=u_all[: self.m].copy(), u_all=u_all.copy(), status="optimal", active=W, iterations=it,
+                            infeasible_state=infeasible)
         self._warm = ()
         z = self._dual_fallback(a0)
         if z is not None:
             self.stats.dual_fallbacks += 1
             u_all = z[: self.n_u]
             return QPResult(u=u_all[: self.m].copy(), u_all=u_all.copy(), status="dual_fallback", active=(),
-                            iterations=self.max_iter)
+                            iterations=self.max_iter, infeasible_state=infeasible)
         self.stats.safe_actions += 1
         u_all = np.clip(a0[: self.n_u], self.params.dcel_max, self.params.acel_max)
-        return QPResult(u=u_all[: self.m].copy(), u_all=u_all, status="safe_action", active=(), iterations=self.max_iter)
+        return QPResult(u=u_all[: self.m].copy(), u_all=u_all, status="safe_action", active=(), iterations=self.max_iter,
+                        infeasible_state=infeasible)
+
+    def _state_outside(self, yini: np.ndarray) -> bool:
+        """The last instant's CAV spacing errors lie outside [spacing_min, spacing_max] - s_star."""
+        qp, pr = self.qp, self.params
+        last = yini[(qp.t_ini - 1) * qp.p:][qp.p - qp.m:]
+        return bool(np.any(last < pr.spacing_min - pr.s_star - 1e-9) or np.any(last > pr.spacing_max - pr.s_star + 1e-9))
 
     def solve_g(self, uini, yini, eini) -> np.ndarray:
         """The full optimal ``g`` (for inspection; slower than :meth:`solve`)."""

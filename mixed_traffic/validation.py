@@ -1,0 +1,337 @@
+"""Validation at the door: one error type, one message style, one table of field rules.
+
+Every user mistake is turned into a :class:`ConfigError` (a ``ValueError``) before any
+work starts, with the message ``<field>: <what is wrong>; allowed: <range>``. The apps
+print it as ``error: <message>`` and exit with status 2 (:func:`run_cli`); set
+``MT_DEBUG=1`` to get the traceback instead.
+
+Adding a config field with a range: add one line to :data:`CONFIG_RULES` (dotted path ->
+rule). Fields without a rule still get the generic check that every float of the
+config is finite. Scenario fields are checked by
+:meth:`mixed_traffic.scenarios.TrafficScenario.validate` (types from the dataclass
+annotations, so a new scenario field is type- and finiteness-checked without code).
+
+>>> from mixed_traffic.config import compose
+>>> validate_config(compose(["loss.gamma=1.5"]))
+Traceback (most recent call last):
+...
+mixed_traffic.validation.ConfigError: loss.gamma: 1.5 is out of range; allowed: a number in (0, 1]
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+DEBUG_ENV = "MT_DEBUG"
+
+
+class ConfigError(ValueError):
+    """A bad value: ``<field>: <problem>; allowed: <allowed>``."""
+
+    def __init__(self, field: str, problem: str, allowed: str):
+        self.field, self.problem, self.allowed = field, problem, allowed
+        super().__init__(f"{field}: {problem}; allowed: {allowed}")
+
+
+# ----------------------------------------------------------------------------- single values
+def is_real(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+@dataclass(frozen=True)
+class Real:
+    """A finite number in ``[lo, hi]`` (``lo_open`` / ``hi_open`` exclude the ends); ``None`` if ``optional``."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+    optional: bool = False
+    integer: bool = False
+
+    def describe(self) -> str:
+        def g(v):
+            return str(int(v)) if float(v).is_integer() and abs(v) < 1e21 else f"{v:g}"
+
+        kind = "an integer" if self.integer else "a number"
+        if self.lo == -math.inf and self.hi == math.inf:
+            rng = f"{kind} (finite)"
+        elif self.hi == math.inf:
+            rng = f"{kind} {'>' if self.lo_open else '>='} {g(self.lo)}"
+        elif self.lo == -math.inf:
+            rng = f"{kind} {'<' if self.hi_open else '<='} {g(self.hi)}"
+        else:
+            rng = f"{kind} in {'(' if self.lo_open else '['}{g(self.lo)}, {g(self.hi)}{')' if self.hi_open else ']'}"
+        return rng + (" or null" if self.optional else "")
+
+    def __call__(self, field: str, x) -> None:
+        if x is None:
+            if self.optional:
+                return
+            raise ConfigError(field, "is missing (null)", self.describe())
+        if not is_real(x) or (self.integer and not isinstance(x, int)):
+            raise ConfigError(field, f"{x!r} is a {type(x).__name__}", self.describe())
+        if not math.isfinite(x):
+            raise ConfigError(field, f"{x!r} is not finite", self.describe())
+        lo_bad = x <= self.lo if self.lo_open else x < self.lo
+        hi_bad = x >= self.hi if self.hi_open else x > self.hi
+        if lo_bad or hi_bad:
+            raise ConfigError(field, f"{x!r} is out of range", self.describe())
+
+
+def Int(lo: float = -math.inf, hi: float = math.inf, optional: bool = False) -> Real:  # noqa: N802
+    return Real(lo, hi, optional=optional, integer=True)
+
+
+@dataclass(frozen=True)
+class OneOf:
+    choices: tuple
+
+    def __call__(self, field: str, x) -> None:
+        if x not in self.choices:
+            raise ConfigError(field, f"unknown value {x!r}", str(list(self.choices)))
+
+
+# ----------------------------------------------------------------------------- the config table
+#: dotted config path -> rule. Paths absent from a config (another loss / trainer) are skipped.
+CONFIG_RULES: dict[str, Callable] = {
+    "seed": Int(0, 2**63 - 1),
+    "threads": Int(0),
+    "resume_override": OneOf((True, False)),
+    "env.backend": OneOf(("torch", "sumo")),
+    "env.episode_seconds": Real(0, lo_open=True, optional=True),
+    "env.weight_v": Real(0, optional=True),
+    "env.weight_s": Real(0, optional=True),
+    "env.weight_u": Real(0, optional=True),
+    "env.s_min": Real(0, lo_open=True, optional=True),
+    "env.s_max": Real(0, lo_open=True, optional=True),
+    "env.hdv_param_noise": Real(0, 1, hi_open=True, optional=True),
+    "transforms.safety_layer.s_min": Real(0, lo_open=True),
+    "transforms.safety_layer.s_max": Real(0, lo_open=True),
+    "transforms.discretizer.state_bins": Int(2),
+    "transforms.discretizer.action_bins": Int(2),
+    "policy.log_std_min": Real(),
+    "policy.log_std_max": Real(),
+    "loss.gamma": Real(0, 1, lo_open=True),
+    "loss.gae_lambda": Real(0, 1),
+    "loss.clip_epsilon": Real(0, lo_open=True),
+    "loss.entropy_coeff": Real(0),
+    "loss.critic_coeff": Real(0),
+    "loss.clip_value": Real(0, lo_open=True, optional=True),
+    "loss.lambda_init": Real(0),
+    "loss.lambda_lr": Real(0),
+    "loss.lambda_max": Real(0),
+    "loss.tau": Real(0, 1, lo_open=True),
+    "loss.alpha": Real(0, 1, lo_open=True),
+    "trainer.total_frames": Int(0),  # 0: no training (a pure-MPC intersection experiment); ring loops need >= 1
+    "trainer.num_envs": Int(1),
+    "trainer.rollout_len": Int(1),
+    "trainer.checkpoint_every": Int(0),
+    "trainer.log_every": Int(1),
+    "trainer.max_minutes": Real(0, lo_open=True, optional=True),
+    "trainer.max_iterations": Int(1, optional=True),
+    "trainer.lr": Real(0, lo_open=True),
+    "trainer.epochs": Int(1),
+    "trainer.minibatch_size": Int(1),
+    "trainer.max_grad_norm": Real(0, lo_open=True),
+    "trainer.buffer_size": Int(1),
+    "trainer.batch_size": Int(1),
+    "trainer.start_learning_after": Int(0),
+    "trainer.updates_per_batch": Int(1),
+    "trainer.target_update_every": Int(1),
+    "trainer.eps_start": Real(0, 1),
+    "trainer.eps_end": Real(0, 1),
+    "trainer.eps_decay_frames": Int(1),
+    "logger.backend": OneOf(("csv", "wandb", "none")),
+    "logger.mode": OneOf(("offline", "online", "disabled")),
+    "eval.episodes": Int(1),
+    "eval.seed": Int(0, 2**63 - 1),
+    "eval.episode_seconds": Real(0, lo_open=True, optional=True),
+    "eval.hdv_param_noise": Real(0, 1, hi_open=True, optional=True),
+    "eval.settle_seconds": Real(0),
+    "eval.warmup_seconds": Real(0),
+    "eval.plot_episode": Int(0),
+}
+
+_MISSING = object()
+
+
+def _walk(node, prefix: str = ""):
+    """(dotted path, value) of every leaf of a config (interpolations unresolved are skipped)."""
+    if isinstance(node, DictConfig):
+        for k in node.keys():
+            if OmegaConf.is_missing(node, k):
+                continue
+            try:
+                v = node[k]
+            except Exception:  # an interpolation that only resolves inside a Hydra app
+                continue
+            yield from _walk(v, f"{prefix}{k}.")
+    elif isinstance(node, ListConfig):
+        for i, v in enumerate(node):
+            yield from _walk(v, f"{prefix}{i}.")
+    else:
+        yield prefix[:-1], node
+
+
+def validate_config(cfg: DictConfig) -> DictConfig:
+    """Check every rule of :data:`CONFIG_RULES` present in ``cfg`` and that all floats are finite."""
+    for path, node in _walk(cfg):
+        if path.startswith("hydra."):
+            continue
+        if isinstance(node, float) and not math.isfinite(node) and path not in CONFIG_RULES:
+            raise ConfigError(path, f"{node!r} is not finite", "a finite number")
+    for path, rule in CONFIG_RULES.items():
+        value = OmegaConf.select(cfg, path, default=_MISSING, throw_on_missing=False)
+        if value is not _MISSING:
+            rule(path, value)
+    tc = cfg.get("transforms")
+    if tc is not None and "safety_layer" in tc and not tc.safety_layer.s_min < tc.safety_layer.s_max:
+        raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
+                          "s_min < s_max")
+    pol = cfg.get("policy")
+    if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
+        raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",
+                          "log_std_min <= log_std_max")
+    return cfg
+
+
+def check_env_config(cfg: DictConfig, **extra) -> None:
+    """Build (and so validate) the scenario of ``cfg.env`` without starting anything.
+
+    Errors name the config path: ``env.<field>`` for the named fields, else
+    ``env.overrides.<field>``.
+    """
+    from mixed_traffic.scenarios import PRESETS, get_scenario
+    from mixed_traffic.training.builders import ENV_FIELDS, env_kwargs
+
+    env = cfg.env
+    if env.scenario not in PRESETS:  # the intersection env validates its own arguments
+        return
+    try:
+        get_scenario(env.scenario, **env_kwargs(env, **extra))
+    except ConfigError as e:
+        where = "env." if e.field in ENV_FIELDS else "env.overrides."
+        raise ConfigError(where + e.field, e.problem, e.allowed) from None
+
+
+# ----------------------------------------------------------------------------- paths
+def check_writable_dir(field: str, directory: str | Path) -> Path:
+    """``directory`` exists or can be created, and a file can be written in it (probed, then removed)."""
+    d = Path(directory).expanduser().absolute()
+    for parent in (d, *d.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                raise ConfigError(field, f"cannot write in {str(d)!r} ({str(parent)!r} is a file, not a directory)",
+                                  "a writable directory")
+            break
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        probe = d / f".mt-write-probe-{os.getpid()}"
+        probe.write_bytes(b"x")
+        probe.unlink()
+    except OSError as e:
+        raise ConfigError(field, f"cannot write in {str(d)!r} ({e.strerror or e})",
+                          "a writable directory") from None
+    return d
+
+
+# ----------------------------------------------------------------------------- apps
+def known_experiments() -> list[str]:
+    import hydra_configs
+
+    root = Path(hydra_configs.__file__).parent / "experiment"
+    return sorted(p.stem for p in root.glob("*.yaml"))
+
+
+def check_argv(argv: list[str]) -> list[str]:
+    """Checks Hydra cannot do on the command line; returns the (possibly rewritten) argv.
+
+    - ``experiment=<name>`` must name a file of ``hydra_configs/experiment`` (a misspelt
+      name would otherwise fall back to the defaults).
+    - ``env.overrides.<field>=v`` is a new key of a free-form dict: it is passed to Hydra as
+      ``++env.overrides.<field>=v`` so no ``+`` is needed.
+    """
+    out = []
+    names = None
+    for a in argv:
+        key, eq, value = a.partition("=")
+        if eq and key.lstrip("+~") == "experiment" and not key.startswith("~"):
+            names = names or known_experiments()
+            for v in value.split(","):  # a sweep over experiments
+                if v not in names:
+                    raise ConfigError("experiment", f"unknown name {v!r}", str(names))
+        if eq and key.startswith("env.overrides.") and not key.startswith("+"):
+            a = "++" + a
+        out.append(a)
+    return out
+
+
+def _debug() -> bool:
+    return os.environ.get(DEBUG_ENV, "0") not in ("", "0", "false", "False")
+
+
+def _in_multirun() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def report_error(e: BaseException, prog: str) -> None:
+    print(f"error: {e}", file=sys.stderr)
+    print(f"({prog}: set {DEBUG_ENV}=1 for the traceback)", file=sys.stderr)
+
+
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, PermissionError)
+
+
+def guarded(fn: Callable, prog: str):
+    """Call ``fn()``; a user error becomes ``error: ...`` on stderr and exit status 2.
+
+    ``MT_DEBUG=1`` re-raises instead (full traceback).
+    """
+    try:
+        return fn()
+    except USER_ERRORS as e:
+        if _debug() or _in_multirun():  # a sweep records the failure per job (and still writes its summary)
+            raise
+        report_error(e, prog)
+        raise SystemExit(2) from None
+    except OSError as e:  # a full disk, an unreadable file: name it without a traceback
+        if _debug() or _in_multirun():
+            raise
+        report_error(ConfigError(getattr(e, "filename", None) or "file", e.strerror or str(e),
+                                 "a readable/writable path with free space"), prog)
+        raise SystemExit(2) from None
+
+
+def run_cli(hydra_main: Callable, prog: str, argv: list[str] | None = None) -> None:
+    """Entry point of a Hydra app: argv checks, then Hydra, with errors as ``error:`` lines and exit 2.
+
+    Hydra's own start-up errors (an unknown key, a wrong type) keep Hydra's message and
+    exit with status 2 too.
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    new_argv = guarded(lambda: check_argv(argv), prog)
+    saved = sys.argv
+    sys.argv = [saved[0] if saved else prog, *new_argv]
+    try:
+        hydra_main()
+    except SystemExit as e:
+        if e.code == 1:  # Hydra's composition errors
+            raise SystemExit(2) from None
+        raise
+    finally:
+        sys.argv = saved
+
+
+__all__ = ["ConfigError", "Real", "Int", "OneOf", "CONFIG_RULES", "validate_config", "check_env_config",
+           "check_writable_dir", "check_argv", "guarded", "run_cli", "known_experiments", "DEBUG_ENV"]
