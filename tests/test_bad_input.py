@@ -217,6 +217,11 @@ def test_5_resume_with_a_conflicting_config_is_refused_with_the_keys(tmp_path):
     assert "total_frames: 128" in (run / "config.resumed_1.yaml").read_text()
 
 
+def test_5_a_finished_run_cannot_be_resumed(finished_run):
+    with pytest.raises(FileNotFoundError, match=r"^resume: the run in .* has finished \(final.pt\).*; allowed:"):
+        train(compose(TINY), resume=finished_run)
+
+
 # ----------------------------------------------------------------------------- 6. files
 def test_6_orphaned_temporaries_are_removed_and_a_full_disk_keeps_the_previous_file(tmp_path, monkeypatch):
     path = tmp_path / "checkpoints" / "latest.pt"
@@ -464,15 +469,19 @@ def test_property_config_refuses_invalid_values_naming_the_field(base_configs, p
     assert str(e.value).startswith(path + ":") and "; allowed: " in str(e.value)
 
 
-def test_property_apps_exit_2_on_invalid_values(tmp_path, monkeypatch):
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(pair=st.sampled_from(PAIRS))
+def test_property_apps_exit_2_on_invalid_values(tmp_path, capsys, pair):
     from mixed_traffic.apps.train import main
 
-    monkeypatch.chdir(tmp_path)
-    for override in ("loss.gamma=nan", "trainer.num_envs=0", "env.s_min=-1", "eval.episodes=0"):
-        with pytest.raises(SystemExit) as e:
-            main([*TINY, override, f"hydra.run.dir={tmp_path}/o"])
-        assert e.value.code == 2, override
-    assert not (tmp_path / "o" / "logs").exists()
+    path, value = pair
+    text = {math.inf: "inf"}.get(value, "nan" if value != value else repr(value))
+    with pytest.raises(SystemExit) as e:
+        main([*TINY, f"{path}={text}", f"hydra.run.dir={tmp_path}/o"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and path.split(".")[-1] in err, err  # ours or Hydra's (schema type) message
+    assert "Traceback" not in err
+    assert not (tmp_path / "o" / "logs").exists()  # nothing started
 
 
 def test_validate_config_accepts_every_shipped_experiment():

@@ -135,6 +135,10 @@ def resolve_checkpoint(path: str | Path, field: str = "resume") -> Path:
         for cand in (p / "checkpoints" / LATEST, p / LATEST):
             if cand.is_file():
                 return cand
+        if (p / "final.pt").is_file() and field == "resume":
+            raise FileNotFoundError(f"{field}: the run in {str(path)!r} has finished (final.pt) and keeps no "
+                                    f"checkpoints/{LATEST} to continue from; allowed: a run that stopped early, "
+                                    "or a new run (evaluate this one with mt-eval checkpoint=...)")
         raise FileNotFoundError(f"{field}: no checkpoints/{LATEST} in the directory {str(path)!r}; allowed: {CKPT_ALLOWED}")
     if not p.is_file():
         raise FileNotFoundError(f"{field}: no such checkpoint file or run directory {str(path)!r}; allowed: {CKPT_ALLOWED}")
