@@ -127,7 +127,7 @@ class TrafficScenario:
                 if not isinstance(x, dict):
                     raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "a mapping")
                 for k, v in x.items():
-                    if name == "hdv_params" or is_real(v):  # model parameters are numbers
+                    if name == "hdv_params" or is_real(v) or isinstance(v, bool):  # numbers (a bool is not one)
                         Real()(f"{name}.{k}", v)
 
     def validate(self) -> TrafficScenario:

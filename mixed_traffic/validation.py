@@ -278,6 +278,18 @@ def _debug() -> bool:
     return os.environ.get(DEBUG_ENV, "0") not in ("", "0", "false", "False")
 
 
+def _job_error_class():
+    from hydra.errors import CompactHydraException
+
+    class JobError(CompactHydraException):
+        """A user error inside one job of a sweep: Hydra prints its message without a traceback."""
+
+    return JobError
+
+
+JobError = _job_error_class()
+
+
 def _in_multirun() -> bool:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
@@ -301,15 +313,20 @@ def guarded(fn: Callable, prog: str):
     try:
         return fn()
     except USER_ERRORS as e:
-        if _debug() or _in_multirun():  # a sweep records the failure per job (and still writes its summary)
+        if _debug():
             raise
+        if _in_multirun():  # Hydra records the failed job (the sweep goes on) and prints this message only
+            raise JobError(f"error: {e}") from e
         report_error(e, prog)
         raise SystemExit(2) from None
     except OSError as e:  # a full disk, an unreadable file: name it without a traceback
-        if _debug() or _in_multirun():
+        if _debug():
             raise
-        report_error(ConfigError(getattr(e, "filename", None) or "file", e.strerror or str(e),
-                                 "a readable/writable path with free space"), prog)
+        err = ConfigError(getattr(e, "filename", None) or "file", e.strerror or str(e),
+                          "a readable/writable path with free space")
+        if _in_multirun():
+            raise JobError(f"error: {err}") from e
+        report_error(err, prog)
         raise SystemExit(2) from None
 
 

@@ -19,7 +19,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-SKIP_KEYS = ("seed", "resume", "trainer.progress")
+SKIP_KEYS = ("seed", "resume", "resume_override", "trainer.progress")
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, float]:
@@ -134,7 +134,7 @@ class SweepSummary(Callback):
             job_dir.mkdir(parents=True, exist_ok=True)
             _atomic_write(job_dir / FAILED, json.dumps({
                 "job": str(job_dir), "overrides": list(config.hydra.overrides.task),
-                "error": f"{type(err).__name__}: {err}"}, indent=2))
+                "error": str(err) if str(err).startswith("error: ") else f"{type(err).__name__}: {err}"}, indent=2))
         if sweep_dir.is_dir():
             write_sweep_summary(sweep_dir)
 

@@ -11,7 +11,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from mixed_traffic.training.checkpoint import LATEST, atomic_save
+from mixed_traffic.training.checkpoint import LATEST, atomic_save, atomic_write_text
 
 
 def make_logger(cfg: DictConfig, out_dir: Path):
@@ -85,7 +85,7 @@ class Run:
         run = cls(cfg=cfg, out_dir=out, total_iters=total_iters, frames_per_batch=frames_per_batch)
         run.logger = make_logger(cfg, out)
         if not (cfg.get("resume") and (out / "config.yaml").exists()):  # a resume keeps the run's own config
-            (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            atomic_write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
         return run
 
     @property
@@ -138,7 +138,7 @@ class Run:
     def save_final(self, payload: dict, summary: dict) -> Path:
         path = atomic_save(dict(payload, config=OmegaConf.to_container(self.cfg, resolve=True)),
                            self.out_dir / "final.pt")
-        (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        atomic_write_text(self.out_dir / "summary.json", json.dumps(summary, indent=2))
         return path
 
     def close(self) -> None:

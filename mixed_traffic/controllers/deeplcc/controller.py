@@ -32,7 +32,7 @@ class QPPolicyNet(torch.nn.Module):
 
     ``solvers`` is one :class:`DeepLCCSolver` shared by every row or a list with
     one per row. ``statuses`` counts the solve outcomes (optimal / dual_fallback /
-    safe_action) so a fallback is never silent.
+    safe_action / invalid_input) so a fallback is never silent.
     """
 
     def __init__(self, solvers):

@@ -25,7 +25,11 @@ costs a 200x310 product plus a few tiny solves per step. Its answer is verified
 (primal and dual feasibility) before it is returned; when the loop does not
 converge the reduced dual problem is solved with cvxopt; if that fails too, the
 documented safe action (the equality-only optimum clipped to the acceleration
-bounds) is returned. Every fallback is counted in :class:`QPStats`.
+bounds) is returned. Every fallback is counted in :class:`QPStats`. NaN/inf inputs are
+not solved: the safe action ``u = 0`` comes back with status ``"invalid_input"``. A state
+whose measured CAV spacing already lies outside ``[spacing_min, spacing_max]`` is solved
+and flagged (``QPResult.infeasible_state``, ``QPStats.infeasible_states``). Hankel data
+that is not persistently exciting is refused when the solver is built.
 
 >>> import numpy as np, torch
 >>> from mixed_traffic.controllers.deeplcc.platoon import PlatoonConfig
