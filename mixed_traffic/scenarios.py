@@ -116,7 +116,7 @@ class TrafficScenario:
                 raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "a string")
             elif t == "bool" and not isinstance(x, bool):
                 raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "true or false")
-            elif t.startswith("tuple["):
+            elif t.startswith(("tuple[float", "tuple[int")):
                 integer = t.startswith("tuple[int")
                 if not isinstance(x, (tuple, list)) or (t.count(",") and not t.endswith("...]")
                                                         and len(x) != t.count(",") + 1):
@@ -127,7 +127,8 @@ class TrafficScenario:
                 if not isinstance(x, dict):
                     raise ConfigError(name, f"{x!r} is a {type(x).__name__}", "a mapping")
                 for k, v in x.items():
-                    if name == "hdv_params" or is_real(v) or isinstance(v, bool):  # numbers (a bool is not one)
+                    # model parameters and profile numbers (a bool is not one); other dicts may hold anything
+                    if name == "hdv_params" or is_real(v) or (name == "profile_kwargs" and isinstance(v, bool)):
                         Real()(f"{name}.{k}", v)
 
     def validate(self) -> TrafficScenario:

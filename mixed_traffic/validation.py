@@ -21,6 +21,7 @@ mixed_traffic.validation.ConfigError: loss.gamma: 1.5 is out of range; allowed: 
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import sys
 from collections.abc import Callable
@@ -42,7 +43,7 @@ class ConfigError(ValueError):
 
 # ----------------------------------------------------------------------------- single values
 def is_real(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class Real:
             if self.optional:
                 return
             raise ConfigError(field, "is missing (null)", self.describe())
-        if not is_real(x) or (self.integer and not isinstance(x, int)):
+        if not is_real(x) or (self.integer and not isinstance(x, numbers.Integral)):
             raise ConfigError(field, f"{x!r} is a {type(x).__name__}", self.describe())
         if not math.isfinite(x):
             raise ConfigError(field, f"{x!r} is not finite", self.describe())
