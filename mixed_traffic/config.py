@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any  # noqa: UP035  (OmegaConf needs typing generics)
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, DictConfig
 
 # ----------------------------------------------------------------------------- env
 
@@ -40,7 +40,9 @@ class EnvConfig:
 
     The named fields are the scenario fields the experiments change; ``None`` keeps the
     preset's value. Any other scenario field goes in ``overrides`` (validated by
-    :func:`mixed_traffic.scenarios.get_scenario`, which names unknown fields).
+    :func:`mixed_traffic.scenarios.get_scenario`, which names unknown fields):
+    ``env.overrides.ring_length=230`` works as is (no ``+`` needed: ``overrides`` is the
+    one open node of the config; a misspelt field name fails when the env is built).
     ``num_envs`` lives in the trainer (rows stepped together).
     """
 
@@ -56,7 +58,7 @@ class EnvConfig:
     s_min: float | None = None
     s_max: float | None = None
     hdv_param_noise: float | None = None
-    overrides: dict[str, Any] = field(default_factory=dict)
+    overrides: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
 
 
 # ----------------------------------------------------------------------------- transforms
@@ -64,11 +66,26 @@ class EnvConfig:
 
 @dataclass
 class SafetyLayerConfig:
-    """One-step safety filter: s_min clips the action down, s_max (head gap) clips it up."""
+    """One-step safety filter: s_min clips the action down, s_max (head gap) clips it up.
+
+    ``s_max: null`` switches the head-gap bound off (rings without a head, ``ring_wave``).
+    """
 
     s_min: float = 5.0
-    s_max: float = 40.0
+    s_max: float | None = 40.0
     mode: str = "stopping"  # "stopping": collision-free under bounded braking; "one_step": the seed's rule
+
+
+@dataclass
+class ResidualDamperConfig:
+    """``residual_damper`` in the chain: executed = clip(damper(state) + weight * action).
+
+    ``base`` is a wave damper of :mod:`mixed_traffic.controllers.dampers` (``pi_saturation``,
+    ``follower_stopper``, ``idm``); the policy learns a bounded correction to it.
+    """
+
+    base: str = "pi_saturation"
+    weight: float = 0.5
 
 
 @dataclass
@@ -98,6 +115,7 @@ class TransformsConfig:
 
     chain: list[str] = field(default_factory=lambda: ["non_negative_reward"])
     safety_layer: SafetyLayerConfig = field(default_factory=SafetyLayerConfig)
+    residual_damper: ResidualDamperConfig = field(default_factory=ResidualDamperConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
 
@@ -237,6 +255,24 @@ class LoggerConfig:
 
 
 @dataclass
+class WaveEvalConfig:
+    """The stop-and-go wave report of rings without a head (``env=ring_wave``).
+
+    Every controller in ``controllers`` (``human``: all-human ring, ``idm``,
+    ``follower_stopper``, ``pi_saturation``, and ``policy`` when a checkpoint is given)
+    runs the same ``episodes`` per ring length; metrics are taken after ``warmup_seconds``.
+    """
+
+    controllers: list[str] = field(default_factory=lambda: ["human", "idm", "follower_stopper", "pi_saturation"])
+    ring_lengths: list[float] = field(default_factory=lambda: [260.0])
+    episodes: int = 8
+    episode_seconds: float = 600.0
+    warmup_seconds: float = 300.0
+    hard_brake: float = -2.0  # m/s^2: a hard-braking event starts when a vehicle's acceleration drops below this
+    safety_layer: bool = True  # also run the learned policy behind transforms.safety_layer (it always runs without)
+
+
+@dataclass
 class EvalConfig:
     """Deterministic evaluation after training (and by ``mt-eval``)."""
 
@@ -261,6 +297,7 @@ class EvalConfig:
     s_min: float = 5.0
     s_max: float = 40.0
     rmse_bar: float = 1.0
+    wave: WaveEvalConfig = field(default_factory=WaveEvalConfig)
 
 
 # ----------------------------------------------------------------------------- top level
@@ -280,7 +317,7 @@ class Config:
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads per run (the joblib launcher runs jobs side by side)
     checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
-    controller: str | None = None  # mt-eval: a classical controller instead ("idm" or "ovm")
+    controller: str | None = None  # mt-eval: a classical controller instead ("idm", "ovm"; wave rings: a damper or "all")
     resume: str | None = None  # path to a checkpoint (.pt) or a run directory
     resume_override: bool = False  # resume even though budgets/hyper-parameters differ from the checkpoint's
     out_dir: str = "${hydra:runtime.output_dir}"

@@ -153,3 +153,23 @@ def leader_gaps(pos: Tensor, vehicle_length: float, ring_length: float | None) -
     gap = ahead - pos - vehicle_length
     gap[..., 0] = float("inf")
     return gap
+
+
+def idm_equilibrium_speed(gap: Tensor | float, *, v0: Num, T: Num, s0: Num, delta: Num, iters: int = 60,
+                          **_) -> Tensor:
+    """Speed at which IDM drives steadily at bumper gap ``gap``: the root of ``a(gap, v, v) = 0``.
+
+    ``(s0 + v T) / sqrt(1 - (v / v0)^delta) = gap``, solved by bisection on ``[0, v0]``
+    (the left side grows with ``v``); 0 when ``gap <= s0``. On a ring of length ``L``
+    with ``n`` identical cars of length ``l`` the uniform flow has ``gap = L / n - l``.
+    """
+    gap = torch.as_tensor(gap, dtype=torch.float64)
+    lo = torch.zeros_like(gap)
+    hi = torch.full_like(gap, float(v0))
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        need = (s0 + mid * T) / torch.sqrt((1.0 - (mid / v0) ** delta).clamp_min(1e-12))
+        too_fast = need > gap
+        hi = torch.where(too_fast, mid, hi)
+        lo = torch.where(too_fast, lo, mid)
+    return 0.5 * (lo + hi)

@@ -25,7 +25,27 @@ class TrafficScenario:
 
     Vehicles are ordered head first along the direction of travel: index 0 is the
     head (driven by ``profile``), ``cav_indices`` are driven by the action, the
-    rest are human drivers following ``hdv_model``.
+    rest are human drivers following ``hdv_model``. With ``head=False`` (ring only)
+    there is no scripted vehicle: index 0 is a human driver or a CAV like any other.
+
+    Wave-related fields (the ``ring_wave`` preset):
+
+    * ``accel_noise``: standard deviation (m/s^2) of a Gaussian term added to every
+      human's acceleration at every step (Flow's ``accel_noise``: ``accel +=
+      N(0, noise)`` per step, 0.2 in its ring), then clipped to ``[a_min, a_max]``;
+    * ``ring_length_range``: ``(low, high)`` draws the ring length per episode,
+      uniformly; ``None`` keeps ``ring_length``;
+    * ``init_wave``: amplitude ``A`` of one sinusoidal wave of the initial gaps,
+      ``g_i = g (1 + A sin(2 pi i / n + phi))`` with a random phase ``phi``, so waves
+      are there from the start instead of after minutes of noise-driven growth;
+    * ``reward="wave"``: ``r = weight_v mean(v)/v_star - weight_s std(v)/v_star -
+      weight_u sum_cav |a| / a_max`` over all vehicles (average speed and
+      smoothness, in the spirit of Flow's wave-attenuation reward, which also
+      penalises the mean absolute acceleration of the automated vehicles); the env reports it
+      as ``J = 1 - r`` with ``J_max = 1``, so ``NonNegativeReward`` gives ``max(r, 0)``;
+    * ``observation="wave"``: each CAV's local view ``[v/10, (v_lead - v)/10, gap/20,
+      (v_avg - v)/10, a/a_max]`` where ``v_avg`` is its own mean speed over the last
+      ``cav_speed_window`` seconds (``("cav", "speed_avg")``).
     """
 
     name: str = "ring"
@@ -46,7 +66,13 @@ class TrafficScenario:
     profile_kwargs: dict = field(default_factory=lambda: {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
     head_accel_bounds: tuple[float, float] = (-3.0, 2.0)
     cav_accel_bounds: tuple[float, float] = (-3.0, 3.0)
-    observation: str = "seed"  # "seed": [v_i/30, p_i/L]; "relative": per-CAV physical features
+    observation: str = "seed"  # "seed": [v_i/30, p_i/L]; "relative": per-CAV physical features; "wave"
+    head: bool = True  # a scripted head at index 0 (False: ring only, every car a human or a CAV)
+    accel_noise: float = 0.0  # std (m/s^2) of the per-step Gaussian noise on human accelerations
+    ring_length_range: tuple[float, float] | None = None  # per-episode ring length U[low, high]
+    init_wave: float = 0.0  # amplitude of a sinusoidal initial gap wave, fraction of the mean gap
+    cav_speed_window: float = 38.0  # s, window of ("cav", "speed_avg") (no-head scenarios)
+    reward: str = "deeplcc"  # "deeplcc" (stage cost J) or "wave" (average speed and smoothness)
     # reward (DeeP-LCC cost) and constraint cost
     weight_v: float = 1.0
     weight_s: float = 0.5
@@ -74,7 +100,15 @@ class TrafficScenario:
 
     @property
     def hdv_indices(self) -> tuple[int, ...]:
-        return tuple(i for i in range(1, self.n_vehicles) if i not in self.cav_indices)
+        first = 1 if self.head else 0
+        return tuple(i for i in range(first, self.n_vehicles) if i not in self.cav_indices)
+
+    @property
+    def ring_lengths(self) -> tuple[float, float]:
+        """The range ring lengths are drawn from (``(L, L)`` when fixed)."""
+        if self.ring_length_range is None:
+            return (float(self.ring_length), float(self.ring_length))
+        return (float(self.ring_length_range[0]), float(self.ring_length_range[1]))
 
     def hdv_defaults(self):
         base = IDMParams() if self.hdv_model == "idm" else OVMParams()
@@ -82,7 +116,9 @@ class TrafficScenario:
 
     @property
     def J_max(self) -> float:
-        """Worst-case DeeP-LCC cost of one step (maps the reward into [0, 1])."""
+        """Worst-case DeeP-LCC cost of one step (maps the reward into [0, 1]); 1 for ``reward="wave"``."""
+        if self.reward == "wave":
+            return 1.0
         a_abs = max(abs(self.cav_accel_bounds[0]), abs(self.cav_accel_bounds[1]))
         return (self.weight_v * (self.n_vehicles - 1) * self.v_dev_max**2
                 + self.weight_s * self.n_cav * self.spacing_clip**2
@@ -110,6 +146,8 @@ class TrafficScenario:
         """Every field holds a value of its annotated type; numbers are finite."""
         for f in dataclasses.fields(self):
             name, x, t = f.name, getattr(self, f.name), str(f.type).replace(" ", "")
+            if x is None and t.endswith("|None"):
+                continue
             if t in ("float", "int", "float|None", "int|None"):
                 Real(optional=t.endswith("None"), integer=t.startswith("int"))(name, x)
             elif t == "str" and not isinstance(x, str):
@@ -149,11 +187,15 @@ class TrafficScenario:
             bad("episode_seconds", self.episode_seconds, f">= dt ({self.dt})")
         if self.n_vehicles < 2:
             bad("n_vehicles", self.n_vehicles, ">= 2 (a head and at least one follower)")
+        if not self.head and not self.is_ring:
+            bad("head", self.head, "True on an open road (head=False needs road='ring')")
         if self.n_cav < 1:
             bad("cav_indices", self.cav_indices, "at least one CAV index")
+        first = 1 if self.head else 0
         for i in self.cav_indices:
-            if not (isinstance(i, int) and 1 <= i < self.n_vehicles):
-                bad("cav_indices", self.cav_indices, f"distinct integers in [1, {self.n_vehicles - 1}] (0 is the head)")
+            if not (isinstance(i, int) and first <= i < self.n_vehicles):
+                bad("cav_indices", self.cav_indices, f"distinct integers in [{first}, {self.n_vehicles - 1}]"
+                    + (" (0 is the head)" if self.head else ""))
         if len(set(self.cav_indices)) != self.n_cav:
             bad("cav_indices", self.cav_indices, "distinct indices")
         if self.hdv_model not in ("idm", "ovm"):
@@ -166,14 +208,29 @@ class TrafficScenario:
             bad("hdv_param_noise", self.hdv_param_noise, "[0, 1)")
         if self.vehicle_length <= 0:
             bad("vehicle_length", self.vehicle_length, "> 0")
+        if self.ring_length_range is not None:
+            r = self.ring_length_range
+            if not (len(r) == 2 and 0 < r[0] <= r[1]):
+                bad("ring_length_range", r, "(low, high) with 0 < low <= high, or None")
+            if not self.is_ring:
+                bad("ring_length_range", r, "None on an open road")
         if self.is_ring:
             if not self.ring_length > 0:
                 bad("ring_length", self.ring_length, "> 0")
             min_len = self.n_vehicles * (self.vehicle_length + 1.0)
-            if self.ring_length < min_len:
+            shortest = min(self.ring_lengths)
+            if shortest < min_len:
                 bad("n_vehicles", self.n_vehicles,
-                    f"at most {int(self.ring_length // (self.vehicle_length + 1.0))} vehicles on a "
-                    f"{self.ring_length} m ring (vehicle_length {self.vehicle_length} m + 1 m minimum gap each)")
+                    f"at most {int(shortest // (self.vehicle_length + 1.0))} vehicles on a "
+                    f"{shortest} m ring (vehicle_length {self.vehicle_length} m + 1 m minimum gap each)")
+        if not self.accel_noise >= 0:
+            bad("accel_noise", self.accel_noise, ">= 0 (m/s^2)")
+        if not 0 <= self.init_wave < 1:
+            bad("init_wave", self.init_wave, "[0, 1) (fraction of the mean gap)")
+        if not self.cav_speed_window >= self.dt:
+            bad("cav_speed_window", self.cav_speed_window, f">= dt ({self.dt})")
+        if self.reward not in ("deeplcc", "wave"):
+            bad("reward", self.reward, "'deeplcc' or 'wave'")
         if self.init_spacing is not None and self.init_spacing <= 0:
             bad("init_spacing", self.init_spacing, "> 0 or None")
         if self.v_init < 0:
@@ -184,8 +241,10 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative"):
-            bad("observation", self.observation, "'seed' or 'relative'")
+        if self.observation not in ("seed", "relative", "wave"):
+            bad("observation", self.observation, "'seed', 'relative' or 'wave'")
+        if self.observation == "relative" and not self.head:
+            bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:
             bad("profile", self.profile, sorted(PROFILES))
         try:
@@ -223,7 +282,28 @@ def _deeplcc() -> TrafficScenario:
     )
 
 
-PRESETS = {"ring": _ring, "deeplcc": _deeplcc}
+def _ring_wave() -> TrafficScenario:
+    """Sugiyama / Flow ring: 22 cars, 260 m, no head, one CAV.
+
+    ``ring_length_range=[220, 270]`` draws the length per episode (Flow's training range).
+
+    Humans follow Flow's IDM (v0 30, T 1, a 1, b 1.5, delta 4, s0 2; SUMO's IDM
+    emergency bound -9 m/s^2) with per-step acceleration noise N(0, 0.2) and a 10%
+    per-vehicle, per-episode spread of their parameters; they start at 4 m/s
+    with one sinusoidal wave of 50% of the mean gap. The CAV (car 0) commands
+    accelerations in [-3, 3] m/s^2 (symmetric, so a fresh Gaussian policy starts at 0).
+    """
+    return TrafficScenario(
+        name="ring_wave", road="ring", ring_length=260.0, n_vehicles=22,
+        cav_indices=(0,), head=False, hdv_model="idm",
+        hdv_params={"v0": 30.0, "T": 1.0, "a": 1.0, "b": 1.5, "delta": 4.0, "s0": 2.0},
+        hdv_param_noise=0.1, accel_noise=0.2, init_wave=0.5, v_init=4.0, dt=0.1, episode_seconds=300.0,
+        cav_accel_bounds=(-3.0, 3.0), observation="wave", reward="wave",
+        weight_v=1.0, weight_s=0.2, weight_u=0.3, v_star=10.0, s_min=2.0, s_max=40.0,
+    )
+
+
+PRESETS = {"ring": _ring, "deeplcc": _deeplcc, "ring_wave": _ring_wave}
 
 
 def get_scenario(name: str, **overrides) -> TrafficScenario:
@@ -236,7 +316,7 @@ def get_scenario(name: str, **overrides) -> TrafficScenario:
     if unknown:
         raise ConfigError(sorted(unknown)[0], f"unknown override(s) {sorted(unknown)} (not fields of scenario {name!r})",
                           str(sorted(allowed)))
-    for key in ("cav_indices", "head_accel_bounds", "cav_accel_bounds"):
+    for key in ("cav_indices", "head_accel_bounds", "cav_accel_bounds", "ring_length_range"):
         if isinstance(overrides.get(key), list):
             overrides[key] = tuple(overrides[key])
     return dataclasses.replace(sc, **overrides).validate()

@@ -180,14 +180,15 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
 def scenario_leader_brake(scenario) -> list[float]:
     """Braking bound (> 0) of each CAV's leader in a :class:`TrafficScenario`.
 
-    Vehicles are ordered head first, so CAV ``i`` follows vehicle ``i - 1``: the head
-    (``head_accel_bounds``), another CAV (``cav_accel_bounds``) or a human driver (the
+    Vehicles are ordered head first, so CAV ``i`` follows vehicle ``i - 1`` (on a ring,
+    CAV 0 follows the last vehicle): the head (``head_accel_bounds``), another CAV (``cav_accel_bounds``) or a human driver (the
     car-following model's ``a_min``, widened by ``hdv_param_noise``).
     """
     out = []
+    head = getattr(scenario, "head", True)
     for i in scenario.cav_indices:
-        lead = i - 1
-        if lead == 0:
+        lead = (i - 1) % scenario.n_vehicles
+        if lead == 0 and head:
             out.append(-float(scenario.head_accel_bounds[0]))
         elif lead in scenario.cav_indices:
             out.append(-float(scenario.cav_accel_bounds[0]))
@@ -211,7 +212,8 @@ class SafetyLayer(Transform):
 
     Args:
         s_min: minimum gap to the leader (m); ``None`` switches the constraint off.
-        s_max: maximum gap to the head vehicle (m); ``None`` switches it off.
+        s_max: maximum gap to the head vehicle (m); ``None`` switches it off (required on
+            rings without a head, which have no ``("cav", "head_gap")``).
         dt: step length (s); ``None`` reads ``dt`` from the parent env.
         mode: ``"stopping"`` (default, collision-free under bounded braking, see the
             module docstring) or ``"one_step"`` (the original rule, for reproduction).
@@ -324,6 +326,9 @@ class SafetyLayer(Transform):
         k = self.cav_keys
         low, high = self._bounds(action)
         need_head = self.s_max is not None
+        if need_head and k["head_gap"] not in tensordict.keys(True):
+            raise KeyError(f"SafetyLayer: s_max={self.s_max} bounds the gap to the head, but {k['head_gap']!r} is "
+                           "not in the tensordict (a ring without a head); use s_max=None there")
         executed = safe_action(
             action, gap=tensordict.get(k["gap"]), speed=tensordict.get(k["speed"]),
             leader_speed=tensordict.get(k["leader_speed"]),

@@ -3,6 +3,8 @@
     mt-eval checkpoint=outputs/runs/ring_lagrangian_ppo/<run>          # final.pt of a run
     mt-eval checkpoint=<run>/checkpoints/latest.pt eval.episodes=5
     mt-eval experiment=ring_lagrangian_ppo transforms=reward controller=idm
+    mt-eval experiment=ring_wave_lppo controller=all                    # wave report: every classical damper
+    mt-eval experiment=ring_wave_lppo checkpoint=<run>                  # learned damper vs the classical ones
 """
 
 from __future__ import annotations
@@ -39,9 +41,16 @@ def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
     set_threads(cfg.threads)
     out = Path(cfg.out_dir) / "eval"
     rep = evaluate_and_report(cfg, out)
-    acc = rep["acceptance"]
     print(f"report: {rep['paths']['md']}")
     print(f"        {rep['paths']['json']}")
+    if "rings" in rep:  # the stop-and-go wave report (rings without a head)
+        for L, e in rep["rings"].items():
+            for label, r in e["controllers"].items():
+                m = r["metrics"]
+                print(f"ring {L} m  {label:<18} mean speed {m['mean_speed']['mean']:.2f} m/s, speed std "
+                      f"{m['speed_std']['mean']:.2f} m/s, collisions {r['collisions']}")
+        return
+    acc = rep["acceptance"]
     print(f"collisions {rep['overall']['collisions']}/{rep['overall']['episodes']} episodes, "
           f"min gap {rep['overall']['min_gap']:.2f} m, max head gap {rep['overall']['max_head_gap']:.2f} m, "
           f"steady RMSE {acc['steady_speed_rmse']:.3f} m/s, pass={acc['pass']}")

@@ -237,6 +237,12 @@ class SumoRingEnv(EnvBase):
             bad("hdv_model", sc.hdv_model, "'idm' (SUMO's IDM)")
         if sc.integration not in ("euler", "ballistic"):
             bad("integration", sc.integration, "'euler' (SUMO's default) or 'ballistic'")
+        if not sc.head:
+            bad("head", sc.head, "True (the ring without a head, e.g. 'ring_wave', runs on the torch backend)")
+        if sc.ring_length_range is not None:
+            bad("ring_length_range", sc.ring_length_range, "None (one fixed ring length per SUMO network)")
+        if sc.accel_noise:
+            bad("accel_noise", sc.accel_noise, "0")
 
     def _acquire(self) -> None:
         global _OWNER
@@ -386,6 +392,7 @@ class SumoRingEnv(EnvBase):
             "traffic": {
                 "pos": pos, "speed": vel, "accel": acc, "gap": g,
                 "time": torch.tensor([[self.step_count * sc.dt]], **f), "v_eq": v_eq, "J": j,
+                "ring_length": torch.tensor([[sc.ring_length]], **f),
             },
         }
         return out, j, cost

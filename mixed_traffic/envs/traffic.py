@@ -37,8 +37,17 @@ Tensor = torch.Tensor
 
 
 # ----------------------------------------------------------------------------- shared pieces
+OBS_FEATURES = {"seed": None, "relative": 7, "wave": 5}
+
+
 def observation_dim(sc: TrafficScenario) -> int:
-    return 2 * sc.n_vehicles if sc.observation == "seed" else 7 * sc.n_cav
+    return 2 * sc.n_vehicles if sc.observation == "seed" else OBS_FEATURES[sc.observation] * sc.n_cav
+
+
+def cav_keys(sc: TrafficScenario) -> tuple[str, ...]:
+    """The ``("cav", ...)`` entries: head gap/speed with a head, the CAV's mean speed without."""
+    head = ("head_gap", "head_speed") if sc.head else ("speed_avg",)
+    return ("gap", "speed", "leader_speed", *head, "accel")
 
 
 def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=torch.float32) -> dict:
@@ -51,10 +60,10 @@ def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=t
     def flag():
         return Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
 
-    cav = Composite({k: u(nc) for k in ("gap", "speed", "leader_speed", "head_gap", "head_speed", "accel")},
-                    shape=batch, device=device)
+    cav = Composite({k: u(nc) for k in cav_keys(sc)}, shape=batch, device=device)
+    traffic_1 = ("time", "v_eq", "J") + (("ring_length",) if sc.is_ring else ())
     traffic = Composite({**{k: u(n) for k in ("pos", "speed", "accel", "gap")},
-                         **{k: u(1) for k in ("time", "v_eq", "J")}}, shape=batch, device=device)
+                         **{k: u(1) for k in traffic_1}}, shape=batch, device=device)
     observation = Composite(observation=u(observation_dim(sc)), cav=cav, traffic=traffic, collision=flag(),
                             shape=batch, device=device)
     lo, hi = sc.cav_accel_bounds
@@ -67,32 +76,48 @@ def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=t
 
 
 def stage_terms(sc: TrafficScenario, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor) -> tuple[Tensor, Tensor]:
-    """DeeP-LCC stage cost J and the constraint cost, both ``[..., 1]``.
+    """Stage cost J and the constraint cost, both ``[..., 1]``.
 
-    J = w_v sum_{i != head} (v_i - v_eq)^2 + w_s sum_cav clip(s - s*, +-clip)^2 + w_u sum_cav a^2
+    ``reward="deeplcc"``: J = w_v sum_{i != head} (v_i - v_eq)^2 + w_s sum_cav clip(s - s*, +-clip)^2
+    + w_u sum_cav a^2 (every vehicle's speed counts when there is no head).
+    ``reward="wave"``: J = 1 - r, r = w_v mean(v)/v* - w_s std(v)/v* - w_u sum_cav |a|/a_max.
     cost = sum_cav max(0, s_min - s) / s_min  (gap clamped at 0, so each term is in [0, 1])
     """
     cav_gap = gap[..., list(sc.cav_indices)]
-    j = (sc.weight_v * (speed[..., 1:] - v_eq).pow(2).sum(-1, keepdim=True)
-         + sc.weight_s * (cav_gap - sc.s_star).clamp(-sc.spacing_clip, sc.spacing_clip).pow(2).sum(-1, keepdim=True)
-         + sc.weight_u * cav_accel.pow(2).sum(-1, keepdim=True))
+    if sc.reward == "wave":
+        a_max = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
+        r = (sc.weight_v * speed.mean(-1, keepdim=True) / sc.v_star
+             - sc.weight_s * speed.std(-1, unbiased=False, keepdim=True) / sc.v_star
+             - sc.weight_u * cav_accel.abs().sum(-1, keepdim=True) / a_max)
+        j = 1.0 - r
+    else:
+        hdv_speed = speed[..., 1:] if sc.head else speed
+        j = (sc.weight_v * (hdv_speed - v_eq).pow(2).sum(-1, keepdim=True)
+             + sc.weight_s * (cav_gap - sc.s_star).clamp(-sc.spacing_clip, sc.spacing_clip).pow(2).sum(-1, keepdim=True)
+             + sc.weight_u * cav_accel.pow(2).sum(-1, keepdim=True))
     cost = ((sc.s_min - cav_gap.clamp_min(0.0)).clamp_min(0.0) / sc.s_min).sum(-1, keepdim=True)
     return j, cost
 
 
-def head_gaps(sc: TrafficScenario, pos: Tensor) -> Tensor:
+def head_gaps(sc: TrafficScenario, pos: Tensor, ring_length: Tensor | float | None = None) -> Tensor:
     """Distance from each CAV's front bumper to the head's rear bumper along the road."""
     d = pos[..., :1] - pos[..., list(sc.cav_indices)]
     if sc.is_ring:
-        d = torch.remainder(d, sc.ring_length)
+        d = torch.remainder(d, sc.ring_length if ring_length is None else ring_length)
     return d - sc.vehicle_length
 
 
-def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor) -> Tensor:
-    """The policy input (see ``TrafficScenario.observation``)."""
+def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor,
+            *, ring_length: Tensor | float | None = None, speed_avg: Tensor | None = None) -> Tensor:
+    """The policy input (see ``TrafficScenario.observation``).
+
+    ``ring_length`` (per row, ``[..., 1]``) defaults to the scenario's; ``speed_avg``
+    (each CAV's mean speed, ``[..., n_cav]``) is needed by ``observation="wave"``.
+    """
+    L = sc.ring_length if ring_length is None else ring_length
     if sc.observation == "seed":
         if sc.is_ring:
-            p = torch.remainder(pos, sc.ring_length) / sc.ring_length
+            p = torch.remainder(pos, L) / L
         else:
             p = (pos - pos[..., :1]) / 100.0
         return torch.cat([speed / 30.0, p], dim=-1)
@@ -100,8 +125,11 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     v = speed[..., ci]
     v_lead = speed[..., [i - 1 for i in ci]]
     a_scale = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
-    feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos) / (2 * sc.s_max),
-             (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
+    if sc.observation == "wave":
+        feats = [v / 10.0, (v_lead - v) / 10.0, gap[..., ci] / 20.0, (speed_avg - v) / 10.0, cav_accel / a_scale]
+    else:
+        feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos, L) / (2 * sc.s_max),
+                 (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
     return torch.stack(feats, dim=-1).flatten(-2)
 
 
@@ -155,6 +183,9 @@ class TrafficEnv(EnvBase):
         self._head_idm = params_as_tensors(IDMParams(), (), **f)
         self._hdv_base = sc.hdv_defaults()
         self._window = max(1, int(round(sc.v_eq_window / sc.dt)))
+        self._cav_window = max(1, int(round(sc.cav_speed_window / sc.dt)))
+        self._hdv_lo = float(self._hdv_base.a_min)
+        self._hdv_hi = float(self._hdv_base.a_max)
         # state
         self.pos = torch.zeros(B, n, **f)
         self.vel = torch.zeros(B, n, **f)
@@ -164,14 +195,33 @@ class TrafficEnv(EnvBase):
         self.hdv_params = params_as_tensors(self._hdv_base, (B, n), **f)
         self.head_hist = torch.zeros(B, self._window, **f)
         self.head_sum = torch.zeros(B, **f)
-        self._init_offsets = self._initial_positions()
+        self.ring_len = torch.full((B, 1), float(sc.ring_length), **f)
+        self.cav_hist = torch.zeros(B, self._cav_window, sc.n_cav, **f)
+        self.cav_sum = torch.zeros(B, sc.n_cav, **f)
 
     # ------------------------------------------------------------------ helpers
-    def _initial_positions(self) -> Tensor:
+    def _initial_positions(self, k: int) -> tuple[Tensor, Tensor]:
+        """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of ``k`` rows being reset."""
         sc = self.scenario
-        spacing = sc.initial_spacing() + sc.vehicle_length
-        offs = -spacing * torch.arange(sc.n_vehicles, dtype=torch.float32, device=self.device)
-        return torch.remainder(offs, sc.ring_length) if sc.is_ring else offs
+        f = dict(dtype=torch.float32, device=self.device)
+        idx = torch.arange(sc.n_vehicles, **f)
+        lo, hi = sc.ring_lengths
+        if sc.is_ring:
+            L = lo + (hi - lo) * torch.rand(k, 1, generator=self.rng).to(**f) if hi > lo else torch.full((k, 1), lo, **f)
+            spacing = L / sc.n_vehicles if sc.init_spacing is None else torch.full_like(L, sc.init_spacing
+                                                                                       + sc.vehicle_length)
+        else:
+            L = torch.full((k, 1), float(sc.ring_length), **f)
+            spacing = torch.full((k, 1), sc.initial_spacing() + sc.vehicle_length, **f)
+        offs = -spacing * idx
+        if sc.init_wave > 0:
+            # gaps g (1 + A sin(2 pi i / n + phi)): one stop-and-go wave around the ring, random phase
+            gap = spacing - sc.vehicle_length
+            phi = 2 * torch.pi * torch.rand(k, 1, generator=self.rng).to(**f)
+            gaps = gap * (1 + sc.init_wave * torch.sin(2 * torch.pi * idx / sc.n_vehicles + phi))
+            offs = -torch.cumsum(gaps + sc.vehicle_length, dim=-1)
+            offs = offs - offs[:, :1]
+        return (torch.remainder(offs, L) if sc.is_ring else offs), L
 
     def _v_eq(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
@@ -187,23 +237,47 @@ class TrafficEnv(EnvBase):
 
     def _gaps(self, pos: Tensor) -> Tensor:
         sc = self.scenario
-        return leader_gaps(pos, sc.vehicle_length, sc.ring_length if sc.is_ring else None)
+        return leader_gaps(pos, sc.vehicle_length, self.ring_len if sc.is_ring else None)
+
+    def _push_cav_speed(self, v_cav: Tensor, step: Tensor) -> None:
+        """Each CAV's speed of step ``step`` into its rolling window (``("cav", "speed_avg")``)."""
+        slot = (step % self._cav_window)
+        rows = torch.arange(v_cav.shape[0], device=v_cav.device)
+        old = self.cav_hist[rows, slot]
+        full = (step >= self._cav_window).unsqueeze(-1)
+        self.cav_sum = self.cav_sum + v_cav - torch.where(full, old, torch.zeros_like(old))
+        self.cav_hist[rows, slot] = v_cav
+
+    def _cav_speed_avg(self) -> Tensor:
+        count = (self.step_count + 1).clamp(max=self._cav_window).to(self.cav_sum.dtype).unsqueeze(-1)
+        return self.cav_sum / count
+
+    def _tracked_speed(self, vel: Tensor) -> Tensor:
+        """The speed averaged into ``v_eq``: the head's, or the ring's mean without a head."""
+        return vel[:, 0] if self.scenario.head else vel.mean(-1)
 
     def _output(self, gap: Tensor, v_eq: Tensor, j: Tensor) -> dict:
         sc = self.scenario
         cav_acc = self.acc[:, self._cav]
         ci = self._cav
+        cav = {"gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1], "accel": cav_acc}
+        speed_avg = None
+        if sc.head:
+            cav["head_gap"] = head_gaps(sc, self.pos, self.ring_len)
+            cav["head_speed"] = self.vel[:, :1].expand(-1, len(ci))
+        else:
+            speed_avg = cav["speed_avg"] = self._cav_speed_avg()
+        traffic = {
+            "pos": self.pos, "speed": self.vel, "accel": self.acc, "gap": gap,
+            "time": (self.step_count.unsqueeze(-1) * sc.dt).to(gap.dtype), "v_eq": v_eq, "J": j,
+        }
+        if sc.is_ring:
+            traffic["ring_length"] = self.ring_len
         return {
-            "observation": observe(sc, self.pos, self.vel, gap, cav_acc, v_eq),
-            "cav": {
-                "gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1],
-                "head_gap": head_gaps(sc, self.pos), "head_speed": self.vel[:, :1].expand(-1, len(ci)),
-                "accel": cav_acc,
-            },
-            "traffic": {
-                "pos": self.pos, "speed": self.vel, "accel": self.acc, "gap": gap,
-                "time": (self.step_count.unsqueeze(-1) * sc.dt).to(gap.dtype), "v_eq": v_eq, "J": j,
-            },
+            "observation": observe(sc, self.pos, self.vel, gap, cav_acc, v_eq, ring_length=self.ring_len,
+                                   speed_avg=speed_avg),
+            "cav": cav,
+            "traffic": traffic,
         }
 
     # ------------------------------------------------------------------ EnvBase API
@@ -220,7 +294,7 @@ class TrafficEnv(EnvBase):
         idx = mask.nonzero().squeeze(-1)
         k = int(idx.numel())
         if k:
-            self.pos[idx] = self._init_offsets
+            self.pos[idx], self.ring_len[idx] = self._initial_positions(k)
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
@@ -234,6 +308,9 @@ class TrafficEnv(EnvBase):
             self.head_hist[idx] = 0.0
             self.head_sum[idx] = 0.0
             self._push_head_speed_rows(idx)
+            self.cav_hist[idx] = 0.0
+            self.cav_hist[idx, 0] = self.vel[idx][:, self._cav]
+            self.cav_sum[idx] = self.vel[idx][:, self._cav]
         gap = self._gaps(self.pos)
         v_eq = self._v_eq()
         j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq)
@@ -243,8 +320,9 @@ class TrafficEnv(EnvBase):
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     def _push_head_speed_rows(self, idx: Tensor) -> None:
-        self.head_hist[idx, 0] = self.vel[idx, 0]
-        self.head_sum[idx] = self.vel[idx, 0]
+        v = self._tracked_speed(self.vel[idx])
+        self.head_hist[idx, 0] = v
+        self.head_sum[idx] = v
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         sc = self.scenario
@@ -258,22 +336,29 @@ class TrafficEnv(EnvBase):
         v_lead = torch.roll(vel, 1, dims=-1)
         # human drivers
         acc = car_following_accel(sc.hdv_model, gap, vel, v_lead, self.hdv_params)
-        # head: track the profile's next speed within its bounds; on a ring never into its leader
-        t_next = (self.step_count + 1).to(vel.dtype) * sc.dt
-        v_target = self.profile.speed(t_next, self.profile_params)
-        a_head = ((v_target - vel[:, 0]) / sc.dt).clamp(self._head_lo, self._head_hi)
-        if sc.is_ring:
-            a_safe = idm_accel(gap[:, 0], vel[:, 0], v_lead[:, 0], **self._head_idm)
-            a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
+        if sc.accel_noise > 0:
+            noise = torch.randn(vel.shape, generator=self.rng).to(acc)
+            acc = torch.minimum(torch.maximum(acc + sc.accel_noise * noise, self.hdv_params["a_min"]),
+                                self.hdv_params["a_max"])
         acc = torch.where(self._hdv_mask, acc, torch.zeros_like(acc))
-        acc[:, 0] = a_head
+        if sc.head:
+            # head: track the profile's next speed within its bounds; on a ring never into its leader
+            t_next = (self.step_count + 1).to(vel.dtype) * sc.dt
+            v_target = self.profile.speed(t_next, self.profile_params)
+            a_head = ((v_target - vel[:, 0]) / sc.dt).clamp(self._head_lo, self._head_hi)
+            if sc.is_ring:
+                a_safe = idm_accel(gap[:, 0], vel[:, 0], v_lead[:, 0], **self._head_idm)
+                a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
+            acc[:, 0] = a_head
         acc[:, self._cav] = action.to(acc.dtype).clamp(self._a_lo, self._a_hi)
         new_pos, new_vel, executed = integrate(pos, vel, acc, sc.dt, sc.integration)
         if sc.is_ring:
-            new_pos = torch.remainder(new_pos, sc.ring_length)
+            new_pos = torch.remainder(new_pos, self.ring_len)
         self.pos, self.vel, self.acc = new_pos, new_vel, executed
         self.step_count = self.step_count + 1
-        self._push_head_speed(new_vel[:, 0], self.step_count)
+        self._push_head_speed(self._tracked_speed(new_vel), self.step_count)
+        if not sc.head:
+            self._push_cav_speed(new_vel[:, self._cav], self.step_count)
         new_gap = self._gaps(new_pos)
         collision = (new_gap[:, 1:] <= 0).any(-1, keepdim=True)
         if sc.is_ring:

@@ -27,6 +27,8 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     controller = controller if controller is not None else cfg.get("controller")
     if (checkpoint is None) == (controller is None):
         raise ValueError("evaluate: give exactly one of checkpoint=PATH or controller=idm|ovm")
+    if is_wave_ring(checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg):
+        return evaluate_waves_and_report(cfg, out_dir, checkpoint=checkpoint, controller=controller, title=title)
     run_dir = None
     if checkpoint is not None:
         run_cfg, state = checkpoint_config(checkpoint)
@@ -55,5 +57,44 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     return report
 
 
-__all__ = ["evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
+def is_wave_ring(cfg: DictConfig) -> bool:
+    """Whether ``cfg.env`` is a ring without a head (the stop-and-go wave report applies)."""
+    from mixed_traffic.scenarios import PRESETS, get_scenario
+    from mixed_traffic.training.builders import env_kwargs
+
+    if cfg.env.scenario not in PRESETS:
+        return False
+    kw = env_kwargs(cfg.env)
+    head = kw.get("head", PRESETS[cfg.env.scenario]().head)
+    return get_scenario(cfg.env.scenario, **kw).is_ring and not head
+
+
+def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint=None, controller=None,
+                              title: str | None = None) -> dict:
+    """The wave report (:mod:`mixed_traffic.evaluation.waves`) of a checkpoint against the classical
+    dampers of ``cfg.eval.wave.controllers``, or of ``controller`` (a name of
+    :data:`mixed_traffic.controllers.dampers.DAMPERS`, or ``all`` for the whole list)."""
+    from mixed_traffic.evaluation.waves import acceptance, evaluate_waves, write_wave_report
+
+    if checkpoint is not None:
+        run_cfg, state = checkpoint_config(checkpoint)
+        run_cfg.eval = cfg.eval
+        report, traces = evaluate_waves(run_cfg, policy_factory=policy_factory_from_state(run_cfg, state))
+        report["acceptance"] = acceptance(report)
+        label, eval_cfg = str(checkpoint), run_cfg
+    else:
+        names = None if controller == "all" else [controller]
+        report, traces = evaluate_waves(cfg, controllers=names)
+        label, eval_cfg = str(controller), cfg
+    report["policy"] = label
+    report["env"] = OmegaConf.to_container(eval_cfg.env, resolve=True)
+    report["transforms"] = list(eval_cfg.transforms.chain)
+    paths = write_wave_report(report, traces, out_dir, title=title or f"Stop-and-go waves: {label}")
+    report["paths"] = {k: str(v) for k, v in paths.items()}
+    report["overall"] = {"collisions": sum(r["collisions"] for e in report["rings"].values()
+                                           for r in e["controllers"].values())}
+    return report
+
+
+__all__ = ["is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
            "read_scalars", "METRICS"]

@@ -46,6 +46,14 @@ def _safety_layer(tcfg, env):
     return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode)
 
 
+def _residual_damper(tcfg, env):
+    from mixed_traffic.controllers.dampers import make_damper
+    from transforms import ResidualAction
+
+    r = tcfg.residual_damper
+    return ResidualAction(make_damper(r.base, env), weight=r.weight)
+
+
 def _state_discretizer(tcfg, env):
     from transforms import StateDiscretizer
 
@@ -56,6 +64,7 @@ def _state_discretizer(tcfg, env):
 TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
     "safety_layer": _safety_layer,
+    "residual_damper": _residual_damper,
     "state_discretizer": _state_discretizer,
 }
 

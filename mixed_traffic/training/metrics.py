@@ -33,10 +33,16 @@ def batch_metrics(batch: TensorDictBase) -> dict:
         m["safety_clip_rate"] = float(clipped.float().mean())
         m["safety_delta_abs"] = float(nxt.get(("safety", "delta")).abs().mean())
     gap = nxt.get(("cav", "gap"), None)
+    hg = None
     if gap is not None:
         m["gap_min"] = float(gap.min())
-        hg = nxt.get(("cav", "head_gap"))
-        m["head_gap_mean"] = float(hg.mean())
-        sp, hs = nxt.get(("cav", "speed")), nxt.get(("cav", "head_speed"))
-        m["speed_err_abs"] = float((sp - hs).abs().mean())
+        hg = nxt.get(("cav", "head_gap"), None)
+        if hg is not None:  # rings without a head have no head gap
+            m["head_gap_mean"] = float(hg.mean())
+            sp, hs = nxt.get(("cav", "speed")), nxt.get(("cav", "head_speed"))
+            m["speed_err_abs"] = float((sp - hs).abs().mean())
+    speed = nxt.get(("traffic", "speed"), None)
+    if speed is not None and hg is None:
+        m["speed_mean"] = float(speed.mean())
+        m["speed_std"] = float(speed.std(-1, unbiased=False).mean())  # spread across vehicles (waves)
     return {k: v for k, v in m.items() if v is not None and not (isinstance(v, float) and torch.isnan(torch.tensor(v)))}
