@@ -282,8 +282,13 @@ def markdown(report: dict, title: str = "Stop-and-go waves") -> str:
     return "\n".join(lines)
 
 
-def plot_space_time(traces: dict, path: str | Path, *, title: str = "", every: int = 5) -> Path:
-    """Position (along the ring) vs time, coloured by speed, one panel per controller."""
+def plot_space_time(traces: dict, path: str | Path, *, title: str = "", every: int = 5,
+                    last_seconds: float | None = 150.0) -> Path:
+    """Position (along the ring) vs time, coloured by speed, one panel per controller.
+
+    ``last_seconds`` keeps the end of the episode (the state the metrics measure) so single
+    vehicles stay visible; ``None`` draws the whole episode.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -295,9 +300,12 @@ def plot_space_time(traces: dict, path: str | Path, *, title: str = "", every: i
     sc = None
     for ax, label in zip(axes[0], labels, strict=True):
         tr = traces[label]
-        t = tr["time"][::every].numpy()
-        pos = tr["pos"][::every].numpy()
-        v = tr["speed"][::every].numpy()
+        keep = slice(None)
+        if last_seconds is not None:
+            keep = tr["time"] >= float(tr["time"][-1]) - last_seconds
+        t = tr["time"][keep][::every].numpy()
+        pos = tr["pos"][keep][::every].numpy()
+        v = tr["speed"][keep][::every].numpy()
         tt = np.repeat(t[:, None], pos.shape[1], axis=1)
         sc = ax.scatter(tt.ravel(), pos.ravel(), c=v.ravel(), s=0.4, cmap="RdYlGn", vmin=0.0, vmax=vmax,
                         rasterized=True)
