@@ -115,7 +115,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "env.s_max": Real(0, lo_open=True, optional=True),
     "env.hdv_param_noise": Real(0, 1, hi_open=True, optional=True),
     "transforms.safety_layer.s_min": Real(0, lo_open=True),
-    "transforms.safety_layer.s_max": Real(0, lo_open=True),
+    "transforms.safety_layer.s_max": Real(0, lo_open=True, optional=True),  # null: no head-gap bound
     "transforms.discretizer.state_bins": Int(2),
     "transforms.discretizer.action_bins": Int(2),
     "policy.log_std_min": Real(),
@@ -194,7 +194,8 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         if value is not _MISSING:
             rule(path, value)
     tc = cfg.get("transforms")
-    if tc is not None and "safety_layer" in tc and not tc.safety_layer.s_min < tc.safety_layer.s_max:
+    if (tc is not None and "safety_layer" in tc and tc.safety_layer.s_max is not None
+            and not tc.safety_layer.s_min < tc.safety_layer.s_max):
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
     pol = cfg.get("policy")
