@@ -89,6 +89,33 @@ class ResidualDamperConfig:
 
 
 @dataclass
+class InterventionCostConfig:
+    """The safety layer's intervention added to the constraint cost (``transforms.InterventionCost``).
+
+    Per step: ``coef * c_int`` with ``c_int`` = ``|delta| / (action range)`` (``magnitude``),
+    the clip flag (``indicator``) or their mean (``both``).
+    """
+
+    coef: float = 1.0
+    mode: str = "both"
+
+
+@dataclass
+class JerkPenaltyConfig:
+    """Training-only smoothness term ``r -= weight * |a_t - a_{t-1}| / (action range)``."""
+
+    weight: float = 1.0
+
+
+@dataclass
+class ResidualConfig:
+    """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual)."""
+
+    base: str = "idm"
+    weight: float = 0.5
+
+
+@dataclass
 class NonNegativeRewardConfig:
     """Reward ``max(J_max - J, 0) / J_max`` in [0, 1]; a collision gives ``collision_reward``."""
 
@@ -107,7 +134,8 @@ class DiscretizerConfig:
 class TransformsConfig:
     """The env-side transform chain, applied in ``chain`` order.
 
-    Known names: ``non_negative_reward``, ``safety_layer``, ``step_counter`` ... (see
+    Known names: ``non_negative_reward``, ``safety_layer``, ``intervention_cost`` (after the
+    layer), ``residual_idm`` (after the layer: the layer clips the sum), ... (see
     :data:`mixed_traffic.training.builders.TRANSFORMS`; an unknown name fails at start-up).
     The Lagrangian penalty belongs to ``loss=lagrangian_ppo`` (lambda is an optimisation
     variable, updated by dual ascent after each batch in the main process).
@@ -116,6 +144,9 @@ class TransformsConfig:
     chain: list[str] = field(default_factory=lambda: ["non_negative_reward"])
     safety_layer: SafetyLayerConfig = field(default_factory=SafetyLayerConfig)
     residual_damper: ResidualDamperConfig = field(default_factory=ResidualDamperConfig)
+    intervention_cost: InterventionCostConfig = field(default_factory=InterventionCostConfig)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)
+    jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
 
@@ -168,6 +199,9 @@ class PPOLossConfig:
     lambda_lr: float = 0.05
     lambda_max: float = 10.0
     violation_tolerance: float = 0.1
+    lambda_method: str = "dual_ascent"  # "dual_ascent", "adam", "sgd" or "pid" (Stooke et al. 2020)
+    lambda_kp: float = 0.0  # pid: proportional gain (the integral gain is lambda_lr)
+    lambda_kd: float = 0.0  # pid: derivative gain
 
 
 @dataclass
@@ -289,6 +323,7 @@ class EvalConfig:
     plot_episode: int = 0  # which episode of each profile is drawn
     # head-profile arguments used by the evaluation (random_steps: the scenario's own)
     profile_kwargs: dict[str, Any] = field(default_factory=lambda: {
+        "random_steps": {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0},
         "emergency_brake": {"start": 50.0, "v_cruise": 15.0, "v_low": 2.0},
         "eudc": {"v_low": 5.0, "v_high": 20.0},
         "sine": {"v_star": 12.5, "amplitude": 5.0, "period": 40.0},
@@ -298,6 +333,11 @@ class EvalConfig:
     s_max: float = 40.0
     rmse_bar: float = 1.0
     wave: WaveEvalConfig = field(default_factory=WaveEvalConfig)
+    intervention_bar: float = 0.05  # largest share of steps the safety layer may change (per profile)
+    # the policy itself: every profile again with the safety layer removed (raw actions
+    # executed), from the standard start and from each of these start spacings (m)
+    without_layer: bool = True
+    close_starts: list[float] = field(default_factory=lambda: [8.0, 15.0])
 
 
 # ----------------------------------------------------------------------------- top level

@@ -81,6 +81,62 @@ class RandomSteps:
 
 
 @dataclass(frozen=True)
+class RandomRamps:
+    """Random holds and ramps: a broad training distribution of head behaviour.
+
+    The head holds its speed for U[hold_min, hold_max] s, then changes to a new speed
+    drawn from U[v_low, v_high] at a rate drawn from U[rate_min, rate_max] m/s^2 (the
+    head's own bounds clip what it can do), and so on. Short holds and fast rates give
+    steps and hard braking, long ramps slow drifts; the first speed is ``v_init`` when
+    given. Parameters per episode: ``[t_0 .. t_K, v_0 .. v_K]`` knots.
+    """
+
+    v_low: float = 2.0
+    v_high: float = 20.0
+    hold_min: float = 3.0
+    hold_max: float = 20.0
+    rate_min: float = 0.5
+    rate_max: float = 3.0
+    horizon: float = 500.0
+    v_init: float | None = None
+
+    def __post_init__(self):
+        if not 0 <= self.v_low <= self.v_high:
+            raise ValueError(f"random_ramps: v_low={self.v_low}, v_high={self.v_high} are invalid; "
+                             "allowed: 0 <= v_low <= v_high")
+        if not 0 < self.hold_min <= self.hold_max:
+            raise ValueError(f"random_ramps: hold_min={self.hold_min}, hold_max={self.hold_max} are invalid; "
+                             "allowed: 0 < hold_min <= hold_max")
+        if not 0 < self.rate_min <= self.rate_max:
+            raise ValueError(f"random_ramps: rate_min={self.rate_min}, rate_max={self.rate_max} are invalid; "
+                             "allowed: 0 < rate_min <= rate_max")
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        n = int(math.ceil(self.horizon / self.hold_min)) + 1  # segments
+        v = self.v_low + (self.v_high - self.v_low) * torch.rand(batch, n + 1, generator=generator)
+        if self.v_init is not None:
+            v[:, 0] = self.v_init
+        hold = self.hold_min + (self.hold_max - self.hold_min) * torch.rand(batch, n, generator=generator)
+        rate = self.rate_min + (self.rate_max - self.rate_min) * torch.rand(batch, n, generator=generator)
+        ramp = (v[:, 1:] - v[:, :-1]).abs() / rate
+        # knots: 0, end of hold 0, end of ramp 0, end of hold 1, ...
+        durations = torch.stack([hold, ramp], dim=-1).flatten(1)
+        times = torch.cat([torch.zeros(batch, 1), torch.cumsum(durations, dim=1)], dim=1)
+        speeds = torch.cat([v[:, :1], torch.stack([v[:, :-1], v[:, 1:]], dim=-1).flatten(1)], dim=1)
+        return torch.cat([times, speeds], dim=1)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        k = params.shape[-1] // 2
+        times, speeds = params[..., :k].to(t.dtype), params[..., k:].to(t.dtype)
+        tt = torch.minimum(t, times[..., -1]).unsqueeze(-1)
+        idx = torch.searchsorted(times.contiguous(), tt.contiguous(), right=True).clamp(1, k - 1)
+        t0, t1 = times.gather(-1, idx - 1), times.gather(-1, idx)
+        v0, v1 = speeds.gather(-1, idx - 1), speeds.gather(-1, idx)
+        w = ((tt - t0) / (t1 - t0).clamp_min(1e-9)).clamp(0.0, 1.0)
+        return (v0 + w * (v1 - v0)).squeeze(-1)
+
+
+@dataclass(frozen=True)
 class RandomPerturbation:
     """Persistent random perturbation around ``v_star`` of amplitude ``amplitude``.
 
@@ -180,6 +236,7 @@ PROFILES = {
     "constant": Constant,
     "random_steps": RandomSteps,
     "random_perturbation": RandomPerturbation,
+    "random_ramps": RandomRamps,
     "sine": Sine,
     "piecewise": PiecewiseLinear,
     "deeplcc_brake": deeplcc_brake,
@@ -202,5 +259,5 @@ def make_profile(name: str, **kwargs):
         raise ValueError(f"profile {name!r}: bad arguments {sorted(kwargs)}; allowed: {allowed}") from e
 
 
-__all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomPerturbation", "Sine",
+__all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomPerturbation", "Sine",
            "PiecewiseLinear", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

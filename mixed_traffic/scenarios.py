@@ -61,6 +61,10 @@ class TrafficScenario:
     episode_seconds: float = 500.0
     v_init: float = 10.0
     init_spacing: float | None = None  # bumper gap at start; None: ring even / open OVM equilibrium
+    # per-episode bumper gap at start drawn from U[lo, hi] (torch backend; ring: at most the even spacing)
+    init_spacing_range: tuple[float, float] | None = None
+    # fixed start gap per row (row i of the batch: entry i % len; torch backend; evaluation of close starts)
+    init_spacing_rows: tuple[float, ...] | None = None
     integration: str = "euler"  # see mixed_traffic.physics.integrate
     profile: str = "random_steps"
     profile_kwargs: dict = field(default_factory=lambda: {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
@@ -137,7 +141,7 @@ class TrafficScenario:
 
     def make_profile(self):
         kwargs = dict(self.profile_kwargs)
-        if self.profile in ("random_steps", "random_perturbation"):
+        if self.profile in ("random_steps", "random_perturbation", "random_ramps"):
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)
 
@@ -148,6 +152,8 @@ class TrafficScenario:
             name, x, t = f.name, getattr(self, f.name), str(f.type).replace(" ", "")
             if x is None and t.endswith("|None"):
                 continue
+            if t.startswith("tuple[") and t.endswith("|None"):
+                t = t[: -len("|None")]
             if t in ("float", "int", "float|None", "int|None"):
                 Real(optional=t.endswith("None"), integer=t.startswith("int"))(name, x)
             elif t == "str" and not isinstance(x, str):
@@ -233,6 +239,25 @@ class TrafficScenario:
             bad("reward", self.reward, "'deeplcc' or 'wave'")
         if self.init_spacing is not None and self.init_spacing <= 0:
             bad("init_spacing", self.init_spacing, "> 0 or None")
+        if self.init_spacing_range is not None:
+            r = tuple(self.init_spacing_range)
+            if len(r) != 2 or not 0 < r[0] <= r[1]:
+                bad("init_spacing_range", self.init_spacing_range, "(lo, hi) with 0 < lo <= hi, or None")
+            if self.is_ring and r[0] > self.ring_length / self.n_vehicles - self.vehicle_length:
+                bad("init_spacing_range", self.init_spacing_range,
+                    f"lo <= {self.ring_length / self.n_vehicles - self.vehicle_length:.2f} m (even spacing on the ring)")
+        if self.init_spacing_rows is not None:
+            rows = tuple(self.init_spacing_rows)
+            even = self.ring_length / self.n_vehicles - self.vehicle_length if self.is_ring else math.inf
+            if len(rows) == 0 or not all(0 < x <= even + 1e-6 for x in rows):
+                bad("init_spacing_rows", self.init_spacing_rows,
+                    f"a non-empty list of gaps in (0, {even:.2f}] m, or None")
+            if self.init_spacing_range is not None:
+                bad("init_spacing_rows", self.init_spacing_rows, "None when init_spacing_range is set")
+        if (self.init_spacing_range is not None or self.init_spacing_rows is not None) and \
+                getattr(self, "ring_length_range", None) is not None:
+            bad("init_spacing_range", self.init_spacing_range or self.init_spacing_rows,
+                "None when ring_length_range is set (one ring length per start spacing)")
         if self.v_init < 0:
             bad("v_init", self.v_init, ">= 0")
         for name in ("head_accel_bounds", "cav_accel_bounds"):
@@ -316,7 +341,8 @@ def get_scenario(name: str, **overrides) -> TrafficScenario:
     if unknown:
         raise ConfigError(sorted(unknown)[0], f"unknown override(s) {sorted(unknown)} (not fields of scenario {name!r})",
                           str(sorted(allowed)))
-    for key in ("cav_indices", "head_accel_bounds", "cav_accel_bounds", "ring_length_range"):
+    for key in ("cav_indices", "head_accel_bounds", "cav_accel_bounds", "ring_length_range", "init_spacing_range",
+                "init_spacing_rows"):
         if isinstance(overrides.get(key), list):
             overrides[key] = tuple(overrides[key])
     return dataclasses.replace(sc, **overrides).validate()

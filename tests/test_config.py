@@ -38,9 +38,16 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     assert cfg.loss.clip_epsilon == 0.15 and cfg.loss.clip_value == 0.2
     assert cfg.trainer.lr == 3e-4 and cfg.trainer.epochs == 6
     assert cfg.trainer.num_envs * cfg.trainer.rollout_len == 4096
-    assert (cfg.loss.lambda_init, cfg.loss.lambda_lr, cfg.loss.lambda_max, cfg.loss.violation_tolerance) == (
-        1.0, 0.05, 10.0, 0.1)
-    assert list(cfg.transforms.chain) == ["non_negative_reward", "safety_layer"]
+    # PID multiplier on (s_min violation + the layer's intervention) against a 1 % budget
+    assert (cfg.loss.lambda_method, cfg.loss.lambda_init, cfg.loss.lambda_lr, cfg.loss.lambda_kp,
+            cfg.loss.lambda_max, cfg.loss.violation_tolerance) == ("pid", 1.0, 0.5, 5.0, 10.0, 0.01)
+    assert list(cfg.transforms.chain) == ["non_negative_reward", "safety_layer", "residual_idm", "intervention_cost"]
+    assert cfg.transforms.residual.weight == 0.5
+    # trained on a broad distribution, not on the evaluation profiles
+    assert cfg.env.profile == "random_ramps" and cfg.env.profile_kwargs.v_high == 20.0
+    assert list(cfg.env.overrides.init_spacing_range) == [8.0, 73.4] and cfg.env.hdv_param_noise == 0.1
+    scratch = compose(["experiment=ring_lagrangian_ppo_scratch"])
+    assert list(scratch.transforms.chain) == ["non_negative_reward", "safety_layer", "intervention_cost"]
     # the layer runs with a 10 m margin below the 40 m bound the evaluation checks
     assert (cfg.transforms.safety_layer.s_min, cfg.transforms.safety_layer.s_max) == (5.0, 30.0)
     assert (cfg.eval.s_min, cfg.eval.s_max) == (5.0, 40.0)

@@ -94,7 +94,11 @@ def test_report_from_a_trained_checkpoint(tmp_path):
     for name in ("random_steps.png", "emergency_brake.png", "training_curves.png"):
         assert (tmp_path / "eval" / name).stat().st_size > 1000, name
     # the safety layer of the trained config is part of the evaluated controller
-    assert rep["transforms"] == ["non_negative_reward", "safety_layer"]
+    assert rep["transforms"] == ["non_negative_reward", "safety_layer", "residual_idm", "intervention_cost"]
+    # ... and the policy is evaluated without it too, from the standard and the close starts
+    assert set(data["without_layer"]["random_steps"]) == {"standard (73.4 m)", "8 m", "15 m"}
+    assert "Without the safety layer" in md and "λ over training" in md
+    assert (tmp_path / "eval" / "random_steps_without_layer_close.png").stat().st_size > 1000
     assert data["overall"]["collisions"] == 0
 
 

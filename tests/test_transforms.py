@@ -208,7 +208,7 @@ def test_residual_action_executes_clipped_sum_and_logs_base():
 # ----------------------------------------------------------------------------- docstrings
 @pytest.mark.parametrize("module", [
     "transforms.safety_layer", "transforms.lagrangian", "transforms.rewards", "transforms.discretizer",
-    "transforms.residual", "losses.lagrangian_ppo", "losses.bc", "losses.residual", "losses.qlearning",
+    "transforms.residual", "transforms.intervention_cost", "transforms.jerk_penalty", "losses.lagrangian_ppo", "losses.bc", "losses.residual", "losses.qlearning",
     "losses.dqn",
 ])
 def test_docstring_examples_run(module):

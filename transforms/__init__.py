@@ -6,6 +6,8 @@
 from transforms.barrier_force import BarrierForce
 from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
+from transforms.intervention_cost import InterventionCost
+from transforms.jerk_penalty import JerkPenalty
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.residual import ResidualAction
 from transforms.rewards import NonNegativeReward, QuadraticReward
@@ -13,6 +15,8 @@ from transforms.safety_layer import SafetyLayer
 
 __all__ = [
     "SafetyLayer",
+    "InterventionCost",
+    "JerkPenalty",
     "LagrangeMultiplier",
     "LagrangianPenalty",
     "NonNegativeReward",

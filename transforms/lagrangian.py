@@ -18,7 +18,7 @@ from torch import nn
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-METHODS = ("dual_ascent", "adam", "sgd")
+METHODS = ("dual_ascent", "adam", "sgd", "pid")
 
 
 class LagrangeMultiplier(nn.Module):
@@ -29,6 +29,15 @@ class LagrangeMultiplier(nn.Module):
     ``method="adam"`` / ``"sgd"`` instead minimise ``-lambda (c_mean - cost_limit)``
     with that torch optimiser (learning rate ``lr``) and project onto
     ``[0, max_value]`` after each step.
+    ``method="pid"`` is the PID Lagrangian of Stooke, Achiam & Abbeel (2020, "Responsive
+    Safety in RL by PID Lagrangian Methods"): with ``e = c_mean - cost_limit``,
+
+    * ``I <- clip(I + lr e, 0, max_value)`` (the integral term: dual ascent, ``lr`` = K_I),
+    * ``lambda <- clip(kp e + I + kd max(0, c_mean - c_prev), 0, max_value)``,
+
+    where ``I`` starts at ``init``. The proportional term raises lambda as soon as the cost
+    exceeds the limit and drops it as soon as it is met (less overshoot and oscillation
+    than the pure integral); the derivative term reacts to a rising cost only.
 
     The value lives in shared memory backed by a file (``/dev/shm`` where available)
     and is only ever updated in place. Pickling the module (or a transform holding it)
@@ -44,7 +53,9 @@ class LagrangeMultiplier(nn.Module):
         lr: step size (``alpha``, default 0.05), > 0.
         max_value: upper bound (default 10.0), > 0.
         cost_limit: the tolerated mean cost ``d`` (default 0.1), >= 0.
-        method: ``"dual_ascent"``, ``"adam"`` or ``"sgd"``.
+        method: ``"dual_ascent"``, ``"adam"``, ``"sgd"`` or ``"pid"``.
+        kp, kd: proportional and derivative gains of ``method="pid"`` (>= 0, default 0:
+            with both 0 the PID method is dual ascent).
 
     Example:
         >>> lam = LagrangeMultiplier(init=1.0, lr=0.05, max_value=10.0, cost_limit=0.1)
@@ -55,7 +66,7 @@ class LagrangeMultiplier(nn.Module):
     """
 
     def __init__(self, init: float = 1.0, lr: float = 0.05, max_value: float = 10.0, cost_limit: float = 0.1,
-                 method: str = "dual_ascent"):
+                 method: str = "dual_ascent", kp: float = 0.0, kd: float = 0.0):
         super().__init__()
         if method not in METHODS:
             raise ValueError(f"LagrangeMultiplier: method={method!r} is invalid; allowed: {list(METHODS)}")
@@ -67,13 +78,19 @@ class LagrangeMultiplier(nn.Module):
             raise ValueError(f"LagrangeMultiplier: lr={lr!r} is invalid; allowed: > 0")
         if not cost_limit >= 0:
             raise ValueError(f"LagrangeMultiplier: cost_limit={cost_limit!r} is invalid; allowed: >= 0")
+        if not kp >= 0 or not kd >= 0:
+            raise ValueError(f"LagrangeMultiplier: kp={kp!r}, kd={kd!r} are invalid; allowed: >= 0")
         self.lr, self.max_value, self.cost_limit, self.method = float(lr), float(max_value), float(cost_limit), method
+        self.kp, self.kd = float(kp), float(kd)
+        # PID state (main process only; saved with state_dict for resuming)
+        self.register_buffer("pid_integral", torch.tensor(float(init), dtype=torch.float64))
+        self.register_buffer("pid_prev_cost", torch.tensor(float("nan"), dtype=torch.float64))
         self._shm_path = self._new_shm_path()
         value = torch.from_file(self._shm_path, shared=True, size=1, dtype=torch.float64)
         value.fill_(float(init))
         self._finalizer = weakref.finalize(self, _unlink, self._shm_path)
         self.register_buffer("value", value.view(()))
-        if method != "dual_ascent":
+        if method in ("adam", "sgd"):
             self.raw = nn.Parameter(torch.tensor(float(init)))
             opt = torch.optim.Adam if method == "adam" else torch.optim.SGD
             self._optim = opt([self.raw], lr=self.lr)
@@ -94,7 +111,7 @@ class LagrangeMultiplier(nn.Module):
         self.__dict__.update(state)
         value = torch.from_file(self._shm_path, shared=True, size=1, dtype=torch.float64)
         self._buffers["value"] = value.view(())
-        if self.method != "dual_ascent":
+        if self.method in ("adam", "sgd"):
             opt = torch.optim.Adam if self.method == "adam" else torch.optim.SGD
             self._optim = opt([self.raw], lr=self.lr)
 
@@ -102,6 +119,15 @@ class LagrangeMultiplier(nn.Module):
         import pickle
 
         return pickle.loads(pickle.dumps(self))
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        # checkpoints written before the PID state existed: keep the defaults (integral = value)
+        if prefix + "value" in state_dict and prefix + "pid_integral" not in state_dict:
+            state_dict[prefix + "pid_integral"] = state_dict[prefix + "value"].detach().clone().double().reshape(())
+            state_dict[prefix + "pid_prev_cost"] = torch.tensor(float("nan"), dtype=torch.float64)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
 
     def __float__(self) -> float:
         return float(self.value)
@@ -114,7 +140,8 @@ class LagrangeMultiplier(nn.Module):
         """Overwrite the value in place (clipped to ``[0, max_value]``)."""
         v = min(max(float(value), 0.0), self.max_value)
         self.value.fill_(v)
-        if self.method != "dual_ascent":
+        self.pid_integral.fill_(v)
+        if self.method in ("adam", "sgd"):
             with torch.no_grad():
                 self.raw.fill_(v)
         return self
@@ -123,12 +150,23 @@ class LagrangeMultiplier(nn.Module):
     def _dual(self, violation: float) -> None:
         self.value.copy_((self.value + self.lr * violation).clamp(0.0, self.max_value))
 
+    @torch.no_grad()
+    def _pid(self, c: float, violation: float) -> None:
+        self.pid_integral.copy_((self.pid_integral + self.lr * violation).clamp(0.0, self.max_value))
+        prev = float(self.pid_prev_cost)
+        d = 0.0 if prev != prev else max(0.0, c - prev)  # nan: first update
+        self.pid_prev_cost.fill_(c)
+        lam = self.kp * violation + float(self.pid_integral) + self.kd * d
+        self.value.fill_(min(max(lam, 0.0), self.max_value))
+
     def update(self, mean_cost: float | torch.Tensor) -> float:
         """One update from the batch's mean cost; returns the new value."""
         c = float(torch.as_tensor(mean_cost, dtype=torch.float64).mean())
         violation = c - self.cost_limit
         if self.method == "dual_ascent":
             self._dual(violation)
+        elif self.method == "pid":
+            self._pid(c, violation)
         else:
             with torch.enable_grad():
                 self._optim.zero_grad(set_to_none=True)
@@ -142,7 +180,8 @@ class LagrangeMultiplier(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"value={float(self.value):.4g}, lr={self.lr}, max_value={self.max_value}, "
-                f"cost_limit={self.cost_limit}, method={self.method!r}")
+                f"cost_limit={self.cost_limit}, method={self.method!r}"
+                + (f", kp={self.kp}, kd={self.kd}" if self.method == "pid" else ""))
 
 
 def _unlink(path: str) -> None:
@@ -172,8 +211,8 @@ class LagrangianPenalty(Transform):
     (e.g. through ``functools.partial``) and every worker applies the current value.
 
     Args:
-        lambda_init, lambda_lr, lambda_max, cost_limit, method: see
-            :class:`LagrangeMultiplier` (defaults 1.0, 0.05, 10.0, 0.1, ``"dual_ascent"``).
+        lambda_init, lambda_lr, lambda_max, cost_limit, method, kp, kd: see
+            :class:`LagrangeMultiplier` (defaults 1.0, 0.05, 10.0, 0.1, ``"dual_ascent"``, 0, 0).
         reward_key: reward entry to penalise (in place).
         cost_key: the per-step cost entry (the env's ``"cost"``).
         raw_reward_key: if set, the unpenalised reward is also written there (declared
@@ -193,13 +232,14 @@ class LagrangianPenalty(Transform):
     """
 
     def __init__(self, lambda_init: float = 1.0, lambda_lr: float = 0.05, lambda_max: float = 10.0,
-                 cost_limit: float = 0.1, method: str = "dual_ascent", *, reward_key: NestedKey = "reward",
+                 cost_limit: float = 0.1, method: str = "dual_ascent", kp: float = 0.0, kd: float = 0.0, *,
+                 reward_key: NestedKey = "reward",
                  cost_key: NestedKey = "cost", raw_reward_key: NestedKey | None = None,
                  multiplier: LagrangeMultiplier | None = None):
         super().__init__(in_keys=[reward_key, cost_key], out_keys=[reward_key])
         self.reward_key, self.cost_key, self.raw_reward_key = reward_key, cost_key, raw_reward_key
         self.multiplier = multiplier if multiplier is not None else LagrangeMultiplier(
-            init=lambda_init, lr=lambda_lr, max_value=lambda_max, cost_limit=cost_limit, method=method)
+            init=lambda_init, lr=lambda_lr, max_value=lambda_max, cost_limit=cost_limit, method=method, kp=kp, kd=kd)
 
     @property
     def lam(self) -> float:

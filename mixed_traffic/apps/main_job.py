@@ -58,7 +58,14 @@ def run_main(cfg: DictConfig) -> dict:
     print(f"plots         : {run_dir / 'eval'}/*.png (training_curves.png, one per head profile)")
     print(f"evaluation    : {rep['overall']['collisions']} collisions in {rep['overall']['episodes']} episodes, "
           f"min gap {rep['overall']['min_gap']:.2f} m, max head gap {rep['overall']['max_head_gap']:.2f} m, "
-          f"steady-state speed RMSE {acc['steady_speed_rmse']:.3f} m/s -> acceptance pass={acc['pass']}")
+          f"steady-state speed RMSE {acc['steady_speed_rmse']:.3f} m/s")
+    if "intervention_rate_max" in acc:
+        print(f"safety layer  : intervention rate <= {acc['intervention_rate_max']:.3f} per profile")
+    if "no_layer_zero_collisions" in acc:
+        nl = sum(r["collisions"] for starts in rep["without_layer"].values() for r in starts.values())
+        print(f"without layer : {nl} collisions (standard and close starts), min gap after warm-up "
+              f"{acc['no_layer_min_gap_after_warmup']:.2f} m, max head gap {acc['no_layer_max_head_gap']:.2f} m")
+    print(f"acceptance    : pass={acc['pass']}")
     return {"run_dir": run_dir, "report": rep, "summary": s}
 
 

@@ -243,6 +243,10 @@ class SumoRingEnv(EnvBase):
             bad("ring_length_range", sc.ring_length_range, "None (one fixed ring length per SUMO network)")
         if sc.accel_noise:
             bad("accel_noise", sc.accel_noise, "0")
+        if sc.init_spacing_range is not None:
+            bad("init_spacing_range", sc.init_spacing_range, "None (use init_spacing)")
+        if sc.init_spacing_rows is not None:
+            bad("init_spacing_rows", sc.init_spacing_rows, "None (use init_spacing)")
 
     def _acquire(self) -> None:
         global _OWNER

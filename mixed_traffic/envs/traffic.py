@@ -223,6 +223,21 @@ class TrafficEnv(EnvBase):
             offs = offs - offs[:, :1]
         return (torch.remainder(offs, L) if sc.is_ring else offs), L
 
+    def _random_offsets(self, k: int) -> Tensor:
+        """Start positions of ``k`` rows with the bumper gap drawn from ``init_spacing_range``."""
+        sc = self.scenario
+        lo, hi = sc.init_spacing_range
+        if sc.is_ring:
+            hi = min(hi, sc.ring_length / sc.n_vehicles - sc.vehicle_length)
+        s = lo + (hi - lo) * torch.rand(k, 1, generator=self.rng)
+        return self._offsets(s.to(self.device))
+
+    def _offsets(self, gap: Tensor) -> Tensor:
+        """Start positions ``[k, n]`` for bumper gaps ``[k, 1]`` (head at 0, the others behind)."""
+        sc = self.scenario
+        offs = -(gap + sc.vehicle_length) * torch.arange(sc.n_vehicles, dtype=torch.float32, device=self.device)
+        return torch.remainder(offs, sc.ring_length) if sc.is_ring else offs
+
     def _v_eq(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
         return (self.head_sum / count).unsqueeze(-1)
@@ -295,6 +310,11 @@ class TrafficEnv(EnvBase):
         k = int(idx.numel())
         if k:
             self.pos[idx], self.ring_len[idx] = self._initial_positions(k)
+            if sc.init_spacing_range is not None:
+                self.pos[idx] = self._random_offsets(k)
+            elif sc.init_spacing_rows is not None:
+                rows = torch.tensor(sc.init_spacing_rows, dtype=torch.float32, device=self.device)
+                self.pos[idx] = self._offsets(rows[idx % len(rows)].unsqueeze(-1))
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0

@@ -32,7 +32,10 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     run_dir = None
     if checkpoint is not None:
         run_cfg, state = checkpoint_config(checkpoint)
+        run_seconds = run_cfg.eval.get("episode_seconds")
         run_cfg.eval = cfg.eval  # evaluation settings come from the caller
+        if cfg.eval.get("episode_seconds") is None and run_seconds is not None:
+            run_cfg.eval.episode_seconds = run_seconds  # ... but a run's evaluation length is kept
         factory = policy_factory_from_state(run_cfg, state)
         label = str(checkpoint)
         p = Path(checkpoint)

@@ -16,8 +16,16 @@ Metrics per episode (all from the env key contract):
   been constant (|a_head| < 0.05 m/s^2) for ``settle_seconds`` (profiles without such
   plateaus, e.g. a sine, fall back to ``speed_rmse``),
 - ``mean_abs_accel`` (m/s^2), ``mean_abs_jerk`` (m/s^3), ``return`` (sum of the env's
-  transformed reward), ``mean_J`` (DeeP-LCC stage cost), ``safety_clip_rate``,
+  transformed reward), ``mean_J`` (DeeP-LCC stage cost), ``safety_clip_rate`` (the
+  intervention rate: share of steps where the safety layer changed the command),
+  ``mean_abs_delta`` (m/s^2, mean |executed - commanded|),
 - ``length`` (s).
+
+The policy itself: with ``cfg.eval.without_layer`` every profile runs a second time with
+the safety layer (and the intervention cost) removed from the chain, so the policy's own
+command is executed, from the standard start and from each ``cfg.eval.close_starts``
+spacing (one batched env, the starts alternate across rows). Its results are in
+``report["without_layer"][profile][start]`` and in ``report["acceptance"]``.
 """
 
 from __future__ import annotations
@@ -32,8 +40,11 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mixed_traffic.training.builders import make_transformed_env
 
-METRICS = ("collision", "min_gap", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
-           "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate", "length")
+METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
+           "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate",
+           "mean_abs_delta", "length")
+LAYER_TRANSFORMS = ("safety_layer", "intervention_cost")
+TRAINING_ONLY = ("jerk_penalty",)  # reward shaping the evaluation leaves out (returns stay the task's)
 
 
 @dataclass
@@ -48,6 +59,7 @@ class Trace:
     gap: torch.Tensor
     head_gap: torch.Tensor
     valid: torch.Tensor
+    raw_accel: torch.Tensor  # the command before the safety layer (= cav_accel without a layer)
 
 
 def _first_done_mask(done: torch.Tensor) -> torch.Tensor:
@@ -80,6 +92,7 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     out["collision"] = (nxt.get("collision").squeeze(-1) & valid).any(1).float()
     out["min_gap"] = torch.where(valid, gap, inf).min(1).values
     out["max_head_gap"] = torch.where(after, head_gap, -inf).max(1).values
+    out["min_gap_after"] = torch.where(after, gap, inf).min(1).values
     outside = (gap < s_min) | (head_gap > s_max)
     out["time_outside"] = (outside & after).sum(1).float() * dt
     out["time_outside_total"] = (outside & valid).sum(1).float() * dt
@@ -107,15 +120,18 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     clipped = nxt.get(("safety", "clipped"), None)
     out["safety_clip_rate"] = masked_mean(clipped[..., 0].float(), valid) if clipped is not None else torch.zeros(
         valid.shape[0])
+    delta = nxt.get(("safety", "delta"), None)
+    delta = delta[..., 0] if delta is not None else torch.zeros_like(a)
+    out["mean_abs_delta"] = masked_mean(delta.abs(), valid)
     out["length"] = valid.sum(1).float() * dt
     trace = Trace(time=t, head_speed=vh, cav_speed=v, cav_accel=a, head_accel=a_head, gap=gap, head_gap=head_gap,
-                  valid=valid)
+                  valid=valid, raw_accel=a - delta)
     return out, trace
 
 
 def eval_env_overrides(cfg: DictConfig, profile: str) -> dict:
     """Scenario overrides of one evaluation profile (random_steps keeps the scenario's arguments)."""
-    ov: dict = {"profile": profile}
+    ov: dict = {"profile": profile, "init_spacing_range": None}  # evaluation starts are fixed
     kw = (cfg.eval.profile_kwargs or {}).get(profile)
     if kw is not None:
         ov["profile_kwargs"] = dict(kw)
@@ -128,9 +144,17 @@ def eval_env_overrides(cfg: DictConfig, profile: str) -> dict:
     return ov
 
 
-def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None):
-    """Run ``episodes`` deterministic episodes of ``profile``; returns (metrics, trace, rollout length)."""
-    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, **eval_env_overrides(cfg, profile))
+def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None,
+                without: tuple[str, ...] = (), init_spacing_rows: list[float] | None = None):
+    """Run ``episodes`` deterministic episodes of ``profile``; returns (metrics, trace).
+
+    ``without`` drops transforms from the chain (e.g. the safety layer);
+    ``init_spacing_rows`` gives row ``i`` the start gap ``init_spacing_rows[i % len]``.
+    """
+    ov = eval_env_overrides(cfg, profile)
+    if init_spacing_rows is not None:
+        ov["init_spacing_rows"] = tuple(float(x) for x in init_spacing_rows)
+    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, **ov)
     if policy_factory is not None:
         policy = policy_factory(env)
     base = env.base_env
@@ -142,6 +166,32 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
                                warmup=cfg.eval.warmup_seconds, settle=cfg.eval.settle_seconds)
     env.close()
     return m, trace
+
+
+def standard_spacing(cfg: DictConfig, profile: str) -> float:
+    """The start gap of the evaluation scenario (the ring's even spacing unless ``init_spacing`` is set)."""
+    from mixed_traffic.scenarios import get_scenario
+    from mixed_traffic.training.builders import env_kwargs
+
+    return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile))).initial_spacing()
+
+
+def run_without_layer(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None):
+    """The policy's own actions (no safety layer) from the standard and the close starts.
+
+    Returns ``{start label: (metrics, trace)}``, labels ``"standard (73.4 m)"``, ``"8 m"``, ...
+    """
+    starts = [standard_spacing(cfg, profile)] + [float(x) for x in (cfg.eval.close_starts or [])]
+    labels = [f"standard ({starts[0]:.1f} m)"] + [f"{x:g} m" for x in starts[1:]]
+    n = len(starts)
+    m, tr = run_profile(cfg, policy, profile, episodes=episodes * n, seed=seed, policy_factory=policy_factory,
+                        without=LAYER_TRANSFORMS, init_spacing_rows=starts)
+    out = {}
+    for j, label in enumerate(labels):
+        rows = torch.arange(j, episodes * n, n)
+        out[label] = ({k: v[rows] for k, v in m.items()},
+                      Trace(**{f: getattr(tr, f)[rows] for f in Trace.__dataclass_fields__}))
+    return out
 
 
 def aggregate(values: torch.Tensor) -> dict:
@@ -196,5 +246,31 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         "steady_speed_rmse": rmse,
         "rmse_within_bar": bool(rmse <= e.rmse_bar),
     }
+    chain = list(cfg.transforms.chain)
+    if "safety_layer" in chain:
+        rate = max(report["profiles"][p]["metrics"]["safety_clip_rate"]["mean"] for p in profiles)
+        report["acceptance"]["intervention_rate_max"] = rate
+        report["acceptance"]["intervention_within_bar"] = bool(rate <= e.get("intervention_bar", 0.05))
+    if runner is run_profile and "safety_layer" in chain and e.get("without_layer", False):
+        report["without_layer"] = {}
+        coll, gmin, hmax = 0, math.inf, -math.inf
+        for prof in profiles:
+            res = run_without_layer(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
+            report["without_layer"][prof] = {}
+            for label, (m, tr) in res.items():
+                report["without_layer"][prof][label] = {
+                    "metrics": {k: aggregate(v) for k, v in m.items()}, "collisions": int(m["collision"].sum()),
+                    "per_episode": {k: [float(x) for x in v] for k, v in m.items()}}
+                coll += int(m["collision"].sum())
+                # gap bounds after the warm-up (min_gap counts from t = 0, which a close start begins below)
+                gmin = min(gmin, float(m["min_gap_after"].min()))
+                hmax = max(hmax, float(m["max_head_gap"].max()))
+            traces[f"{prof}_without_layer"] = res[next(iter(res))][1]
+            traces[f"{prof}_without_layer_close"] = res[list(res)[1]][1] if len(res) > 1 else None
+        traces = {k: v for k, v in traces.items() if v is not None}
+        report["acceptance"]["no_layer_zero_collisions"] = coll == 0
+        report["acceptance"]["no_layer_min_gap_after_warmup"] = gmin
+        report["acceptance"]["no_layer_max_head_gap"] = hmax
+        report["acceptance"]["no_layer_gap_within_bounds"] = bool(gmin >= e.s_min - 1e-6 and hmax <= e.s_max + 1e-6)
     report["acceptance"]["pass"] = all(v for k, v in report["acceptance"].items() if isinstance(v, bool))
     return report, traces

@@ -17,7 +17,13 @@ MD_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", 
               ("max_head_gap", "max head gap (m)", "{:.2f}"), ("time_outside", "time outside (s)", "{:.1f}"),
               ("speed_rmse_steady", "steady RMSE (m/s)", "{:.3f}"), ("speed_rmse", "RMSE (m/s)", "{:.3f}"),
               ("mean_abs_accel", "mean abs a (m/s2)", "{:.3f}"), ("mean_abs_jerk", "jerk (m/s3)", "{:.2f}"),
-              ("return", "return", "{:.1f}"), ("safety_clip_rate", "clip rate", "{:.3f}"))
+              ("return", "return", "{:.1f}"), ("safety_clip_rate", "intervention rate", "{:.3f}"),
+              ("mean_abs_delta", "mean abs Δa (m/s2)", "{:.3f}"))
+NO_LAYER_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", "{:.2f}"),
+                    ("min_gap_after", "min gap after warm-up (m)", "{:.2f}"),
+                    ("max_head_gap", "max head gap (m)", "{:.2f}"), ("time_outside", "time outside (s)", "{:.1f}"),
+                    ("speed_rmse_steady", "steady RMSE (m/s)", "{:.3f}"), ("mean_abs_jerk", "jerk (m/s3)", "{:.2f}"),
+                    ("return", "return", "{:.1f}"))
 
 
 def write_report(report: dict, out_dir: str | Path, traces: dict[str, Trace] | None = None, *,
@@ -30,12 +36,19 @@ def write_report(report: dict, out_dir: str | Path, traces: dict[str, Trace] | N
     plots = {}
     if traces:
         for prof, tr in traces.items():
-            plots[prof] = plot_trace(tr, out / f"{prof}.png", title=f"{title}: {prof}", episode=plot_episode,
+            label = prof.replace("_without_layer_close", ": no safety layer, close start").replace(
+                "_without_layer", ": no safety layer")
+            plots[prof] = plot_trace(tr, out / f"{prof}.png", title=f"{title}: {label}", episode=plot_episode,
                                      s_min=s_min, s_max=s_max)
     if run_dir is not None:
         curves = plot_training_curves(run_dir, out / "training_curves.png", title=title)
         if curves is not None:
             plots["training_curves"] = curves
+        lam = read_scalars(run_dir).get("lambda")
+        if lam is not None and lam[1]:
+            ys = lam[1]
+            report = dict(report, lambda_over_training={"first": ys[0], "max": max(ys), "min": min(ys),
+                                                        "last": ys[-1], "frames": lam[0][-1]})
     report = dict(report, plots={k: str(v) for k, v in plots.items()})
     paths["json"].write_text(json.dumps(report, indent=2))
     paths["md"].write_text(markdown(report, title))
@@ -52,19 +65,19 @@ def markdown(report: dict, title: str) -> str:
     lines.append("| profile | " + " | ".join(c[1] for c in MD_COLUMNS) + " |")
     lines.append("|---|" + "---|" * len(MD_COLUMNS))
     for prof, r in report["profiles"].items():
-        cells = []
-        for key, _, fmt in MD_COLUMNS:
-            if key == "collision":
-                cells.append(str(r["collisions"]))
-                continue
-            st = r["metrics"][key]
-            if key == "min_gap":
-                cells.append(fmt.format(st["min"]))
-            elif key == "max_head_gap":
-                cells.append(fmt.format(st["max"]))
-            else:
-                cells.append(f"{fmt.format(st['mean'])} ± {fmt.format(st['std'])}")
-        lines.append(f"| {prof} | " + " | ".join(cells) + " |")
+        lines.append(f"| {prof} | " + " | ".join(_cells(r, MD_COLUMNS)) + " |")
+    nl = report.get("without_layer")
+    if nl:
+        lines += ["", "Without the safety layer (the policy's own commands executed), per start spacing:", ""]
+        lines.append("| profile | start | " + " | ".join(c[1] for c in NO_LAYER_COLUMNS) + " |")
+        lines.append("|---|---|" + "---|" * len(NO_LAYER_COLUMNS))
+        for prof, starts in nl.items():
+            for label, r in starts.items():
+                lines.append(f"| {prof} | {label} | " + " | ".join(_cells(r, NO_LAYER_COLUMNS)) + " |")
+    lam = report.get("lambda_over_training")
+    if lam:
+        lines += ["", f"λ over training: first {lam['first']:.3f}, max {lam['max']:.3f}, min {lam['min']:.3f}, "
+                      f"last {lam['last']:.3f} ({lam['frames']:.0f} frames; curve in training_curves.png)"]
     acc = report.get("acceptance")
     if acc:
         lines += ["", "Acceptance: " + ", ".join(
@@ -74,12 +87,32 @@ def markdown(report: dict, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cells(r: dict, columns) -> list[str]:
+    cells = []
+    for key, _, fmt in columns:
+        if key == "collision":
+            cells.append(str(r["collisions"]))
+            continue
+        st = r["metrics"].get(key)
+        if st is None:
+            cells.append("–")
+        elif key in ("min_gap", "min_gap_after"):
+            cells.append(fmt.format(st["min"]))
+        elif key == "max_head_gap":
+            cells.append(fmt.format(st["max"]))
+        else:
+            cells.append(f"{fmt.format(st['mean'])} ± {fmt.format(st['std'])}")
+    return cells
+
+
 def plot_trace(tr: Trace, path: Path, *, title: str, episode: int = 0, s_min: float = 5.0,
                s_max: float = 40.0) -> Path:
     e = min(episode, tr.time.shape[0] - 1)
     m = tr.valid[e]
     t = tr.time[e][m].numpy()
-    fig, ax = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    raw = getattr(tr, "raw_accel", None)
+    who = raw is not None and bool((raw[e][m] != tr.cav_accel[e][m]).any())
+    fig, ax = plt.subplots(4 if who else 3, 1, figsize=(10, 10.5 if who else 8), sharex=True)
     ax[0].plot(t, tr.head_speed[e][m].numpy(), label="head", color="tab:blue")
     ax[0].plot(t, tr.cav_speed[e][m].numpy(), label="CAV", color="tab:orange")
     ax[0].set_ylabel("speed (m/s)")
@@ -93,9 +126,17 @@ def plot_trace(tr: Trace, path: Path, *, title: str, episode: int = 0, s_min: fl
     ax[2].axhline(s_min, color="red", ls=":", label=f"s_min = {s_min:g} m")
     ax[2].axhline(s_max, color="red", ls="-.", label=f"s_max = {s_max:g} m")
     ax[2].set_ylabel("gap (m)")
-    ax[2].set_xlabel("time (s)")
     ax[2].set_ylim(0, max(s_max * 1.5, float(tr.gap[e][m].max()) * 1.05 if m.any() else s_max))
     ax[2].legend(loc="upper right", fontsize=8)
+    if who:  # who brakes: the policy's command vs what the safety layer let through
+        r, x = raw[e][m].numpy(), tr.cav_accel[e][m].numpy()
+        ax[3].plot(t, r, label="commanded (policy)", color="tab:gray", lw=0.8)
+        ax[3].plot(t, x, label="executed (after the safety layer)", color="tab:orange", lw=0.8)
+        ax[3].fill_between(t, r, x, where=(x < r), color="tab:red", alpha=0.4, label="layer brakes")
+        ax[3].fill_between(t, r, x, where=(x > r), color="tab:green", alpha=0.4, label="layer pushes")
+        ax[3].set_ylabel("CAV accel (m/s²)")
+        ax[3].legend(loc="upper right", fontsize=8)
+    ax[-1].set_xlabel("time (s)")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -127,7 +168,7 @@ def plot_training_curves(run_dir: str | Path, path: str | Path, *, title: str = 
               ("finished-episode return (desync: lengths vary)", ["episode_return"]),
               ("policy loss", ["loss_objective", "loss"]), ("value loss", ["loss_critic"]),
               ("entropy", ["entropy"]), ("clip fraction", ["clip_fraction"]),
-              ("lambda", ["lambda"]), ("violation / safety clip rate", ["mean_violation", "safety_clip_rate"]),
+              ("lambda", ["lambda"]), ("cost / intervention", ["mean_violation", "safety_clip_rate", "intervention_cost"]),
               ("epsilon", ["epsilon"])]
     panels = [(t, [k for k in keys if k in sc]) for t, keys in panels]
     panels = [(t, keys) for t, keys in panels if keys]

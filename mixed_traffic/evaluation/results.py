@@ -1,6 +1,7 @@
 """Results table (docs/results.md) from evaluated run directories.
 
     python -m mixed_traffic.evaluation.results outputs/results/*/      # prints a markdown table
+    python -m mixed_traffic.evaluation.results --itself RUN... --baseline IDM_RUN   # with / without the layer
 
 Each directory holds ``eval/report.json`` (from ``mt-main``, ``mt-train eval.after_train=true``
 or ``mt-eval``) and, for trained policies, ``summary.json``.
@@ -64,6 +65,56 @@ def profile_table(run_dirs) -> str:
     return "\n".join(lines)
 
 
+def _report(d) -> dict:
+    d = Path(d)
+    p = d / "eval" / "report.json" if (d / "eval" / "report.json").is_file() else d / "report.json"
+    return json.loads(p.read_text())
+
+
+def itself_table(run_dirs, baseline_dir=None) -> str:
+    """Per profile and run: the policy with its safety layer, without it (each start), and a baseline.
+
+    Columns: collisions, min gap (after the warm-up for the layer-free close starts), max
+    head gap after the warm-up, steady RMSE, jerk, return, intervention rate, mean |Δa|.
+    Return and jerk are compared with the baseline (e.g. IDM as the CAV, no layer) on the
+    same episodes when one is given.
+    """
+    base = _report(baseline_dir) if baseline_dir is not None else None
+    lines = ["| profile | run | layer | start | collisions | min gap (m) | max head gap (m) | steady RMSE (m/s) | "
+             "jerk (m/s3) | return | intervention rate | mean abs Δa (m/s2) |", "|" + "---|" * 12]
+
+    def cells(r, after=False):
+        m = r["metrics"]
+        gap = m["min_gap_after"]["min"] if after and "min_gap_after" in m else m["min_gap"]["min"]
+        return (f"{r['collisions']} / {len(r['per_episode']['collision'])} | {gap:.2f} | {m['max_head_gap']['max']:.2f} | "
+                f"{m['speed_rmse_steady']['mean']:.3f} | {m['mean_abs_jerk']['mean']:.3f} | {m['return']['mean']:.1f}")
+
+    first = _report(run_dirs[0])
+    for prof in first["profiles"]:
+        for d in run_dirs:
+            rep = _report(d)
+            r = rep["profiles"][prof]
+            m = r["metrics"]
+            lines.append(f"| {prof} | {Path(d).name} | on | standard | {cells(r)} | {m['safety_clip_rate']['mean']:.3f} | "
+                         f"{m['mean_abs_delta']['mean']:.3f} |")
+            for label, q in rep.get("without_layer", {}).get(prof, {}).items():
+                lines.append(f"| {prof} | {Path(d).name} | off | {label} | {cells(q, after=True)} | – | – |")
+        if base is not None:
+            lines.append(f"| {prof} | {base.get('policy', 'baseline')} | off | standard | "
+                         f"{cells(base['profiles'][prof])} | – | – |")
+    return "\n".join(lines)
+
+
 if __name__ == "__main__":
-    dirs = [a for a in sys.argv[1:] if a != "--profiles"]
+    args = sys.argv[1:]
+    if "--itself" in args:
+        args.remove("--itself")
+        baseline = None
+        if "--baseline" in args:
+            i = args.index("--baseline")
+            baseline = args[i + 1]
+            del args[i:i + 2]
+        print(itself_table(args, baseline))
+        sys.exit(0)
+    dirs = [a for a in args if a != "--profiles"]
     print(profile_table(dirs) if "--profiles" in sys.argv else table(dirs))

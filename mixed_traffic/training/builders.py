@@ -54,6 +54,27 @@ def _residual_damper(tcfg, env):
     return ResidualAction(make_damper(r.base, env), weight=r.weight)
 
 
+def _intervention_cost(tcfg, env):
+    from transforms import InterventionCost
+
+    c = tcfg.intervention_cost
+    return InterventionCost(coef=c.coef, mode=c.mode)
+
+
+def _jerk_penalty(tcfg, env):
+    from transforms import JerkPenalty
+
+    return JerkPenalty(weight=tcfg.jerk_penalty.weight)
+
+
+def _residual_idm(tcfg, env):
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from transforms import ResidualAction
+
+    r = tcfg.residual
+    return ResidualAction(make_classic_policy(r.base, env), weight=r.weight)
+
+
 def _state_discretizer(tcfg, env):
     from transforms import StateDiscretizer
 
@@ -65,6 +86,9 @@ TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
     "safety_layer": _safety_layer,
     "residual_damper": _residual_damper,
+    "intervention_cost": _intervention_cost,
+    "residual_idm": _residual_idm,
+    "jerk_penalty": _jerk_penalty,
     "state_discretizer": _state_discretizer,
 }
 
@@ -75,8 +99,12 @@ def check_chain(chain) -> None:
         raise ValueError(f"transforms.chain: unknown transform(s) {unknown}; allowed: {sorted(TRANSFORMS)}")
 
 
-def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, **env_overrides) -> TransformedEnv:
+def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, without: tuple[str, ...] = (),
+                         **env_overrides) -> TransformedEnv:
     """The base env of ``cfg.env`` wrapped in ``cfg.transforms.chain`` (+ episode bookkeeping).
+
+    ``without`` drops named transforms from the chain (the evaluation removes
+    ``safety_layer`` and ``intervention_cost`` to run the policy's raw actions).
 
     ``RewardSum`` (``episode_reward``: the task reward summed over the episode, before any
     Lagrangian penalty) and ``StepCounter`` come last so logs see the transformed reward.
@@ -84,7 +112,7 @@ def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, **env_ove
     check_chain(cfg.transforms.chain)
     base: EnvBase = make_env(cfg.env.scenario, backend=cfg.env.backend, batch_size=num_envs, seed=seed,
                              device=cfg.device, **env_kwargs(cfg.env, **env_overrides))
-    ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain]
+    ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain if name not in without]
     ts += [RewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return TransformedEnv(base, Compose(*ts))
 

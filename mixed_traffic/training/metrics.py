@@ -32,6 +32,9 @@ def batch_metrics(batch: TensorDictBase) -> dict:
     if clipped is not None:
         m["safety_clip_rate"] = float(clipped.float().mean())
         m["safety_delta_abs"] = float(nxt.get(("safety", "delta")).abs().mean())
+    ic = nxt.get(("safety", "intervention_cost"), None)
+    if ic is not None:
+        m["intervention_cost"] = float(ic.float().mean())
     gap = nxt.get(("cav", "gap"), None)
     hg = None
     if gap is not None:

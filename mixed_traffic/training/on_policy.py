@@ -48,7 +48,8 @@ def build_ppo(cfg: DictConfig, env):
         from transforms import LagrangianPenalty
 
         penalty = LagrangianPenalty(lambda_init=lc.lambda_init, lambda_lr=lc.lambda_lr, lambda_max=lc.lambda_max,
-                                    cost_limit=lc.violation_tolerance)
+                                    cost_limit=lc.violation_tolerance, method=lc.lambda_method,
+                                    kp=lc.lambda_kp, kd=lc.lambda_kd)
         loss = LagrangianPPOLoss(actor, critic, None, multiplier=penalty.multiplier, **kw)
     else:
         loss = ClipPPOLoss(actor, critic, **kw)

@@ -1,0 +1,154 @@
+"""A trained ring policy on cases it never trained on, next to IDM driving the CAV.
+
+Held-out cases (the training distribution is ``random_ramps`` at 2-20 m/s, never
+stopping, on the 313.65 m ring, human parameters spread +-10 %):
+
+- ``stop_and_go``: the head cycles 8 m/s -> standstill -> 8 m/s (2 m/s^2 ramps, 6 s stops);
+- ``brake_to_standstill``: ``emergency_brake`` from 15 m/s down to 0 m/s;
+- ``fast_steps``: ``random_steps`` at 20-28 m/s, above the training range;
+- ``ring_250`` / ``ring_400``: ``random_steps`` on 250 m and 400 m rings;
+- ``humans_30pct``: ``random_steps`` with the humans' parameters spread +-30 %.
+
+For each case the policy runs with its safety layer, without it (from the standard start
+and the close starts of ``eval.close_starts``), and IDM-as-CAV runs without a layer, all
+on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
+``OUT/generalization.json`` and prints the table.
+
+    python benchmarks/ring_generalization.py --checkpoint outputs/results/ring_lagrangian_ppo_seed0 \\
+        --episodes 5 --seconds 200 --out outputs/results/ring_lagrangian_ppo_seed0/generalization
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def stop_and_go(seconds: float, v: float = 8.0, rate: float = 2.0, hold: float = 10.0, stop: float = 6.0) -> dict:
+    ramp = v / rate
+    times, speeds, t = [0.0], [v], 0.0
+    while t < seconds:
+        for dt, target in ((hold, v), (ramp, 0.0), (stop, 0.0), (ramp, v)):
+            t += dt
+            times.append(t)
+            speeds.append(target)
+    return {"times": times, "speeds": speeds}
+
+
+def cases(seconds: float) -> dict[str, dict]:
+    """name -> (profile, profile kwargs, scenario overrides, eval overrides)."""
+    steps = {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0}
+    return {
+        "stop_and_go": {"profile": "piecewise", "kwargs": stop_and_go(seconds)},
+        "brake_to_standstill": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 15.0, "v_low": 0.0}},
+        "fast_steps": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 28.0, "period": 15.0,
+                                                             "v_init": 20.0}},
+        "ring_250": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 250.0}},
+        "ring_400": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 400.0}},
+        "humans_30pct": {"profile": "random_steps", "kwargs": steps, "eval": {"hdv_param_noise": 0.3}},
+    }
+
+
+def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int):
+    from omegaconf import OmegaConf, open_dict
+
+    cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+    with open_dict(cfg):
+        cfg.eval.profiles = [case["profile"]]
+        cfg.eval.profile_kwargs = {case["profile"]: case["kwargs"]}
+        cfg.eval.episodes = episodes
+        cfg.eval.episode_seconds = seconds
+        cfg.eval.seed = seed
+        for k, v in case.get("eval", {}).items():
+            cfg.eval[k] = v
+        for k, v in case.get("env", {}).items():
+            cfg.env.overrides[k] = v
+    return cfg
+
+
+def row(rep: dict, profile: str) -> dict:
+    m = rep["profiles"][profile]["metrics"]
+    return {"collisions": rep["profiles"][profile]["collisions"], "min_gap": m["min_gap"]["min"],
+            "max_head_gap": m["max_head_gap"]["max"], "steady_rmse": m["speed_rmse_steady"]["mean"],
+            "jerk": m["mean_abs_jerk"]["mean"], "return": m["return"]["mean"],
+            "intervention_rate": m["safety_clip_rate"]["mean"]}
+
+
+def no_layer_rows(rep: dict, profile: str) -> dict:
+    out = {}
+    for label, r in rep["without_layer"][profile].items():
+        m = r["metrics"]
+        out[label] = {"collisions": r["collisions"], "min_gap": m["min_gap"]["min"],
+                      "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
+                      "steady_rmse": m["speed_rmse_steady"]["mean"], "jerk": m["mean_abs_jerk"]["mean"],
+                      "return": m["return"]["mean"]}
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--checkpoint", required=True, help="final.pt or a run directory")
+    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--seconds", type=float, default=200.0)
+    p.add_argument("--seed", type=int, default=2000, help="evaluation seed (default 2000, not a training seed)")
+    p.add_argument("--cases", nargs="+", default=None, help="subset of the cases")
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+
+    import torch
+
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.evaluation.harness import evaluate
+    from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
+
+    torch.set_num_threads(1)
+    run_cfg, state = checkpoint_config(a.checkpoint)
+    factory = policy_factory_from_state(run_cfg, state)
+    all_cases = cases(a.seconds)
+    names = a.cases or list(all_cases)
+    results = {}
+    for name in names:
+        case = all_cases[name]
+        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+        rep, _ = evaluate(cfg, policy_factory=factory)
+        idm_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+        from omegaconf import open_dict
+
+        with open_dict(idm_cfg):
+            idm_cfg.transforms.chain = ["non_negative_reward"]
+        idm, _ = evaluate(idm_cfg, policy_factory=lambda env: make_classic_policy("idm", env))
+        prof = case["profile"]
+        results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof),
+                         "idm": row(idm, prof)}
+        print(name, json.dumps(results[name]["policy"]), flush=True)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
+                                                         "seconds": a.seconds, "seed": a.seed,
+                                                         "results": results}, indent=2))
+    lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
+             "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]
+    for name, r in results.items():
+        p_, i_ = r["policy"], r["idm"]
+        lines.append(f"| {name} | policy + layer | {p_['collisions']} | {p_['min_gap']:.2f} | – | "
+                     f"{p_['max_head_gap']:.1f} | {p_['steady_rmse']:.3f} | {p_['jerk']:.2f} | {p_['return']:.0f} | "
+                     f"{p_['intervention_rate']:.3f} |")
+        for label, q in r["policy_without_layer"].items():
+            lines.append(f"| {name} | policy, no layer, start {label} | {q['collisions']} | {q['min_gap']:.2f} | "
+                         f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {q['steady_rmse']:.3f} | "
+                         f"{q['jerk']:.2f} | {q['return']:.0f} | – |")
+        lines.append(f"| {name} | IDM, no layer | {i_['collisions']} | {i_['min_gap']:.2f} | – | "
+                     f"{i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.2f} | {i_['return']:.0f} | – |")
+    md = "\n".join(lines) + "\n"
+    (out / "generalization.md").write_text(md)
+    print(md)
+    return results
+
+
+if __name__ == "__main__":
+    main()

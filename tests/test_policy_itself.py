@@ -1,0 +1,207 @@
+"""The policy without its safety net: the intervention cost, the PID multiplier, randomised
+training starts and head profiles, and the evaluation with the safety layer removed."""
+
+import pytest
+import torch
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from mixed_traffic import make_env
+from mixed_traffic.config import compose
+from mixed_traffic.controllers.classic import make_classic_policy
+from mixed_traffic.evaluation import evaluate
+from mixed_traffic.profiles import make_profile
+from transforms import InterventionCost, LagrangeMultiplier, NonNegativeReward, SafetyLayer
+
+
+# ----------------------------------------------------------------------------- intervention cost
+def _env(mode="both", coef=1.0, batch=4):
+    return TransformedEnv(make_env("ring", batch_size=batch, seed=0),
+                          Compose(NonNegativeReward(), SafetyLayer(s_min=5.0, s_max=30.0),
+                                  InterventionCost(coef=coef, mode=mode)))
+
+
+def test_intervention_cost_spec_and_values():
+    env = _env()
+    check_env_specs(env)
+    assert ("safety", "intervention_cost") in env.observation_spec.keys(True)
+    assert "cost" in env.full_reward_spec.keys()
+    td = env.rollout(200, lambda td: td.set("action", torch.full((4, 1), 3.0)), break_when_any_done=False)
+    nxt = td["next"]
+    delta, clipped = nxt["safety", "delta"], nxt["safety", "clipped"].float()
+    c = nxt["safety", "intervention_cost"]
+    # both = mean of |delta| / (action range 6) and the clip flag
+    assert torch.allclose(c, 0.5 * (delta.abs() / 6.0 + clipped), atol=1e-6)
+    assert clipped.mean() > 0.3  # full throttle behind the head: the layer works
+    # the env's own s_min cost is still in: cost = violation + coef * intervention
+    viol = ((5.0 - nxt["cav", "gap"].clamp_min(0)).clamp_min(0) / 5.0).sum(-1, keepdim=True)
+    assert torch.allclose(nxt["cost"], viol + c, atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["magnitude", "indicator"])
+def test_intervention_cost_modes_and_coef(mode):
+    env = _env(mode=mode, coef=2.0, batch=2)
+    td = env.rollout(100, lambda td: td.set("action", torch.full((2, 1), 3.0)), break_when_any_done=False)
+    nxt = td["next"]
+    expect = nxt["safety", "delta"].abs() / 6.0 if mode == "magnitude" else nxt["safety", "clipped"].float()
+    assert torch.allclose(nxt["safety", "intervention_cost"], expect, atol=1e-6)
+    viol = ((5.0 - nxt["cav", "gap"].clamp_min(0)).clamp_min(0) / 5.0)
+    assert torch.allclose(nxt["cost"], viol + 2.0 * expect, atol=1e-6)
+
+
+def test_intervention_cost_is_zero_when_the_layer_is_idle():
+    env = _env(batch=2)
+    td = env.rollout(100, make_classic_policy("idm", env.base_env), break_when_any_done=False)
+    idle = ~td["next", "safety", "clipped"]
+    assert idle.any()
+    assert (td["next", "safety", "intervention_cost"][idle] == 0).all()
+
+
+def test_intervention_cost_bad_arguments_name_the_field():
+    with pytest.raises(ValueError, match="mode="):
+        InterventionCost(mode="sometimes")
+    with pytest.raises(ValueError, match="coef="):
+        InterventionCost(coef=0.0)
+    with pytest.raises(ValueError, match="scale="):
+        InterventionCost(scale=-1.0)
+
+
+def test_jerk_penalty_prices_changes_of_the_executed_acceleration():
+    from transforms import JerkPenalty
+
+    env = TransformedEnv(make_env("ring", batch_size=2, seed=0), Compose(NonNegativeReward(), JerkPenalty(weight=2.0)))
+    plain = TransformedEnv(make_env("ring", batch_size=2, seed=0), NonNegativeReward())
+    acts = torch.tensor([1.0, -2.0, -2.0, 0.5]).repeat(2, 1).T.unsqueeze(-1)  # [T, B, 1]
+    it = iter(acts)
+    td = env.rollout(4, lambda td: td.set("action", next(it)))
+    it = iter(acts)
+    ref = plain.rollout(4, lambda td: td.set("action", next(it)))
+    pen = (ref["next", "reward"] - td["next", "reward"])[0, :, 0]
+    assert pen.tolist() == pytest.approx([2.0 * 1.0 / 6, 2.0 * 3.0 / 6, 0.0, 2.0 * 2.5 / 6], abs=1e-5)
+    with pytest.raises(ValueError, match="weight="):
+        JerkPenalty(weight=-1.0)
+
+
+# ----------------------------------------------------------------------------- PID multiplier
+def test_pid_without_gains_is_dual_ascent():
+    pid = LagrangeMultiplier(init=1.0, lr=0.3, cost_limit=0.1, method="pid")
+    dual = LagrangeMultiplier(init=1.0, lr=0.3, cost_limit=0.1)
+    for c in (0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9):
+        assert pid.update(c) == pytest.approx(dual.update(c))
+
+
+def test_pid_proportional_term_reacts_at_once_and_releases_at_once():
+    lam = LagrangeMultiplier(init=1.0, lr=0.1, cost_limit=0.1, method="pid", kp=4.0)
+    # violated: integral 1 + 0.1*0.4 = 1.04, plus kp * 0.4
+    assert lam.update(0.5) == pytest.approx(1.04 + 1.6)
+    # met again: the proportional part goes negative at once (integral 1.04 - 0.01)
+    assert lam.update(0.0) == pytest.approx(1.03 - 0.4)
+    # an integral-only multiplier would still sit above 1 here
+    assert float(lam) < 1.0
+
+
+def test_pid_derivative_only_on_a_rising_cost_and_clipped():
+    lam = LagrangeMultiplier(init=0.0, lr=0.1, cost_limit=0.0, method="pid", kd=10.0, max_value=5.0)
+    assert lam.update(0.1) == pytest.approx(0.01)  # first update: no derivative
+    assert lam.update(0.3) == pytest.approx(0.04 + 2.0)  # rising by 0.2
+    assert lam.update(0.2) == pytest.approx(0.06)  # falling: no derivative
+    assert lam.update(1.0) == pytest.approx(5.0)  # clipped at max_value
+
+
+def test_pid_state_survives_state_dict_and_old_checkpoints_load():
+    lam = LagrangeMultiplier(init=1.0, lr=0.5, cost_limit=0.0, method="pid", kp=1.0)
+    lam.update(0.4)
+    lam.update(0.6)
+    other = LagrangeMultiplier(init=0.0, lr=0.5, cost_limit=0.0, method="pid", kp=1.0)
+    other.load_state_dict(lam.state_dict())
+    assert other.update(0.6) == pytest.approx(lam.update(0.6))
+    old = {"value": torch.tensor(2.5, dtype=torch.float64)}  # written before the PID state existed
+    fresh = LagrangeMultiplier(method="pid")
+    fresh.load_state_dict(old)
+    assert float(fresh) == 2.5 and float(fresh.pid_integral) == 2.5
+    with pytest.raises(ValueError, match="kp="):
+        LagrangeMultiplier(method="pid", kp=-1.0)
+    with pytest.raises(ValueError, match="method="):
+        LagrangeMultiplier(method="pi")
+
+
+# ----------------------------------------------------------------------------- training distribution
+def test_random_start_spacing_and_fixed_rows():
+    env = make_env("ring", batch_size=64, seed=0, init_spacing_range=(8.0, 40.0))
+    gaps = env.reset()["cav", "gap"].squeeze(-1)
+    assert gaps.min() >= 8.0 - 1e-4 and gaps.max() <= 40.0 + 1e-4 and gaps.std() > 5.0
+    env = make_env("ring", batch_size=4, seed=0, init_spacing_rows=[8.0, 15.0])
+    assert env.reset()["cav", "gap"].squeeze(-1).tolist() == pytest.approx([8.0, 15.0, 8.0, 15.0])
+    with pytest.raises(ValueError, match="init_spacing_range"):
+        make_env("ring", init_spacing_range=(80.0, 90.0))  # beyond the even spacing of the ring
+    with pytest.raises(ValueError, match="init_spacing_rows"):
+        make_env("ring", init_spacing_rows=[0.0])
+
+
+def test_random_ramps_hold_and_ramp_within_range():
+    prof = make_profile("random_ramps", v_low=2.0, v_high=20.0, rate_min=1.0, rate_max=1.0, v_init=10.0)
+    p = prof.sample(8, torch.Generator().manual_seed(0))
+    t = torch.arange(0, 500, 0.1)
+    v = torch.stack([prof.speed(torch.full((8,), float(x)), p) for x in t], 1)
+    assert (v[:, 0] == 10.0).all()
+    assert v.min() >= 2.0 - 1e-4 and v.max() <= 20.0 + 1e-4
+    dv = (v[:, 1:] - v[:, :-1]).abs() / 0.1
+    assert dv.max() <= 1.0 + 1e-2  # the ramp rate
+    assert (dv < 1e-4).float().mean() > 0.3  # holds
+    assert v.std(1).min() > 1.0  # every episode moves
+    with pytest.raises(ValueError, match="v_low"):
+        make_profile("random_ramps", v_low=10.0, v_high=5.0)
+
+
+# ----------------------------------------------------------------------------- evaluation without the layer
+SHORT = ["eval.episodes=2", "eval.episode_seconds=30.0", "eval.warmup_seconds=5.0", "eval.settle_seconds=3.0",
+         "eval.profiles=[random_steps,emergency_brake]", "eval.profile_kwargs.emergency_brake.start=10.0"]
+
+
+class FullThrottle(torch.nn.Module):
+    def forward(self, speed):
+        return torch.full_like(speed, 3.0)
+
+
+def _throttle(env):
+    from tensordict.nn import TensorDictModule
+
+    return TensorDictModule(FullThrottle(), in_keys=[("cav", "speed")], out_keys=["action"])
+
+
+def test_evaluation_runs_the_policy_with_and_without_the_layer():
+    cfg = compose(["experiment=ring_lagrangian_ppo_scratch"] + SHORT)
+    rep, traces = evaluate(cfg, policy_factory=_throttle)
+    # with the layer: safe, but the layer does all the braking
+    assert rep["overall"]["collisions"] == 0
+    assert rep["acceptance"]["intervention_rate_max"] > 0.3 and not rep["acceptance"]["intervention_within_bar"]
+    assert rep["profiles"]["random_steps"]["metrics"]["mean_abs_delta"]["mean"] > 0.5
+    # without it, the same policy collides (from every start) and the acceptance says so
+    nl = rep["without_layer"]["random_steps"]
+    assert list(nl) == ["standard (73.4 m)", "8 m", "15 m"]
+    assert all(r["collisions"] == 2 for r in nl.values())
+    assert not rep["acceptance"]["no_layer_zero_collisions"] and not rep["acceptance"]["pass"]
+    # "who brakes": the command is +3 throughout, the executed acceleration is not
+    tr = traces["random_steps"]
+    assert (tr.raw_accel[tr.valid] == 3.0).all() and (tr.cav_accel[tr.valid] < 0).any()
+    assert "random_steps_without_layer" in traces and "random_steps_without_layer_close" in traces
+
+
+def test_evaluation_leaves_the_training_only_jerk_penalty_out():
+    from mixed_traffic.evaluation.harness import run_profile
+
+    chain = "transforms.chain=[non_negative_reward,safety_layer,intervention_cost,jerk_penalty]"
+    cfg = compose(["experiment=ring_lagrangian_ppo_scratch", chain] + SHORT)
+    m1, _ = run_profile(cfg, None, "random_steps", episodes=2, seed=0, policy_factory=_throttle)
+    cfg2 = compose(["experiment=ring_lagrangian_ppo_scratch", chain, "transforms.jerk_penalty.weight=50.0"] + SHORT)
+    m2, _ = run_profile(cfg2, None, "random_steps", episodes=2, seed=0, policy_factory=_throttle)
+    assert torch.equal(m1["return"], m2["return"])
+
+
+def test_evaluation_without_layer_passes_for_a_safe_controller():
+    cfg = compose(["experiment=ring_lagrangian_ppo_scratch"] + SHORT)
+    rep, _ = evaluate(cfg, policy_factory=lambda env: make_classic_policy("idm", env, s0=6.0))
+    assert rep["acceptance"]["no_layer_zero_collisions"]
+    starts = rep["without_layer"]["emergency_brake"]
+    assert starts["8 m"]["metrics"]["min_gap"]["min"] <= 8.0 + 1e-3 < starts["15 m"]["metrics"]["min_gap"]["min"]
+    assert rep["acceptance"]["intervention_rate_max"] <= 0.05
