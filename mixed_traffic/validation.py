@@ -116,6 +116,12 @@ CONFIG_RULES: dict[str, Callable] = {
     "env.hdv_param_noise": Real(0, 1, hi_open=True, optional=True),
     "transforms.safety_layer.s_min": Real(0, lo_open=True),
     "transforms.safety_layer.s_max": Real(0, lo_open=True, optional=True),  # null: no head-gap bound
+    "transforms.safety_layer.mode": OneOf(("stopping", "one_step")),
+    "transforms.intervention_cost.coef": Real(0, lo_open=True),
+    "transforms.intervention_cost.mode": OneOf(("magnitude", "indicator", "both")),
+    "transforms.residual.base": OneOf(("idm", "ovm")),
+    "transforms.residual.weight": Real(0),
+    "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
     "transforms.discretizer.action_bins": Int(2),
     "policy.log_std_min": Real(),
@@ -129,6 +135,9 @@ CONFIG_RULES: dict[str, Callable] = {
     "loss.lambda_init": Real(0),
     "loss.lambda_lr": Real(0),
     "loss.lambda_max": Real(0),
+    "loss.lambda_method": OneOf(("dual_ascent", "adam", "sgd", "pid")),
+    "loss.lambda_kp": Real(0),
+    "loss.lambda_kd": Real(0),
     "loss.tau": Real(0, 1, lo_open=True),
     "loss.alpha": Real(0, 1, lo_open=True),
     "trainer.total_frames": Int(0),  # 0: no training (a pure-MPC intersection experiment); ring loops need >= 1
@@ -159,6 +168,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "eval.settle_seconds": Real(0),
     "eval.warmup_seconds": Real(0),
     "eval.plot_episode": Int(0),
+    "eval.intervention_bar": Real(0, 1),
 }
 
 _MISSING = object()

@@ -205,3 +205,18 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     starts = rep["without_layer"]["emergency_brake"]
     assert starts["8 m"]["metrics"]["min_gap"]["min"] <= 8.0 + 1e-3 < starts["15 m"]["metrics"]["min_gap"]["min"]
     assert rep["acceptance"]["intervention_rate_max"] <= 0.05
+
+
+@pytest.mark.parametrize("override, field", [
+    ("loss.lambda_method=pidd", "loss.lambda_method"),
+    ("loss.lambda_kp=-1", "loss.lambda_kp"),
+    ("transforms.intervention_cost.coef=0", "transforms.intervention_cost.coef"),
+    ("transforms.intervention_cost.mode=sometimes", "transforms.intervention_cost.mode"),
+    ("transforms.residual.weight=-0.5", "transforms.residual.weight"),
+    ("eval.intervention_bar=2", "eval.intervention_bar"),
+])
+def test_new_config_fields_are_validated(override, field):
+    from mixed_traffic.validation import validate_config
+
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        validate_config(compose(["experiment=ring_lagrangian_ppo", override]))
