@@ -28,8 +28,10 @@ def _full_throttle(env):
 
 
 def test_sumo_report_matches_torch_and_safety_layer_holds():
-    # the ring_lagrangian_ppo chain: NonNegativeReward + SafetyLayer(s_min=5, "stopping"); SUMO speed mode 0
-    cfg = compose(["experiment=ring_lagrangian_ppo", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    # NonNegativeReward + SafetyLayer(s_min=5, "stopping") (no residual: the policy's command is the action);
+    # SUMO speed mode 0
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=safe", "eval.warmup_seconds=1.0",
+                   "eval.settle_seconds=0.5"])
     kw = dict(policy_factory=_full_throttle, profiles=["random_steps"], episodes=1, seed=7, episode_seconds=20.0)
     sumo, traces = evaluate_on_sumo(cfg, workers=0, **kw)  # in this process: no worker spawn
     torch_rep, _ = evaluate_on_torch_seeds(cfg, **kw)
@@ -63,7 +65,8 @@ def test_full_throttle_collides_without_the_safety_layer():
 @pytest.mark.slow
 def test_sumo_parallel_workers_give_the_in_process_episodes():
     """ParallelEnv(2) (3 episodes: rounds of 2 + 1) reproduces the in-process episodes, seed by seed."""
-    cfg = compose(["experiment=ring_lagrangian_ppo", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=safe", "eval.warmup_seconds=1.0",
+                   "eval.settle_seconds=0.5"])
     kw = dict(policy_factory=_full_throttle, profiles=["random_steps"], episodes=3, seed=11, episode_seconds=5.0)
     par, _ = evaluate_on_sumo(cfg, workers=2, **kw)
     seq, _ = evaluate_on_sumo(cfg, workers=0, **kw)

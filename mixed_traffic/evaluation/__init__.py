@@ -45,6 +45,9 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         factory = classic_factory(controller)
         label = f"{controller}-as-CAV"
         eval_cfg = cfg
+        if "residual_idm" in cfg.transforms.chain:  # the controller drives the CAV itself, not a residual
+            eval_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+            eval_cfg.transforms.chain = [c for c in cfg.transforms.chain if c != "residual_idm"]
     if cfg.env.backend == "sumo":  # the caller's choice: a checkpoint's own config says torch
         from mixed_traffic.evaluation.sumo import evaluate_on_sumo
 
