@@ -19,6 +19,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import action_range
+
 MODES = ("magnitude", "indicator", "both")
 
 
@@ -78,8 +80,7 @@ class InterventionCost(Transform):
     @property
     def scale(self) -> float:
         if self._scale is None:
-            spec = self.parent.full_action_spec["action"]
-            self._scale = float((spec.space.high - spec.space.low).flatten()[0])
+            self._scale = action_range(self.parent)
         return self._scale
 
     def intervention(self, delta: torch.Tensor, clipped: torch.Tensor | None) -> torch.Tensor:

@@ -12,6 +12,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import action_range
+
 
 class JerkPenalty(Transform):
     """``r <- r - weight * sum_cav |a_t - a_{t-1}| / scale`` on the executed acceleration.
@@ -57,8 +59,7 @@ class JerkPenalty(Transform):
     @property
     def scale(self) -> float:
         if self._scale is None:
-            spec = self.parent.full_action_spec["action"]
-            self._scale = float((spec.space.high - spec.space.low).flatten()[0])
+            self._scale = action_range(self.parent)
         return self._scale
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
