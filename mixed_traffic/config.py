@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any  # noqa: UP035  (OmegaConf needs typing generics)
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, DictConfig
+from omegaconf import MISSING, DictConfig
 
 # ----------------------------------------------------------------------------- env
 

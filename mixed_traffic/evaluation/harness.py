@@ -37,6 +37,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm.auto import tqdm
 
 from mixed_traffic.training.builders import make_transformed_env
 
@@ -218,7 +219,12 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     report = {"episodes_per_profile": episodes, "eval_seed": seed, "profiles": {}}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
+    chain = list(cfg.transforms.chain)
+    layer_free = runner is run_profile and "safety_layer" in chain and cfg.eval.get("without_layer", False)
+    bar = tqdm(total=len(profiles) * (2 if layer_free else 1), desc="evaluation", unit="pass", leave=False,
+               disable=not cfg.get("trainer", {}).get("progress", True))
     for prof in profiles:
+        bar.set_postfix_str(prof)
         m, trace = runner(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
         traces[prof] = trace
         report["profiles"][prof] = {
@@ -228,6 +234,7 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         }
         for k in METRICS:
             all_m[k].append(m[k])
+        bar.update()
     cat = {k: torch.cat(v) for k, v in all_m.items() if v}
     ov = {k: aggregate(v)["mean"] for k, v in cat.items()}
     ov["collisions"] = int(cat["collision"].sum())
@@ -246,18 +253,18 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         "steady_speed_rmse": rmse,
         "rmse_within_bar": bool(rmse <= e.rmse_bar),
     }
-    chain = list(cfg.transforms.chain)
     if "safety_layer" in chain:
         rate = max(report["profiles"][p]["metrics"]["safety_clip_rate"]["mean"] for p in profiles)
         report["acceptance"]["intervention_rate_max"] = rate
         report["acceptance"]["intervention_within_bar"] = bool(rate <= e.get("intervention_bar", 0.05))
-    if runner is run_profile and "safety_layer" in chain and e.get("without_layer", False):
+    if layer_free:
         report["without_layer"] = {}
         coll, gmin, hmax = 0, math.inf, -math.inf
         for prof in profiles:
+            bar.set_postfix_str(f"{prof}, layer removed")
             res = run_without_layer(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
             report["without_layer"][prof] = {}
-            for label, (m, tr) in res.items():
+            for label, (m, _tr) in res.items():
                 report["without_layer"][prof][label] = {
                     "metrics": {k: aggregate(v) for k, v in m.items()}, "collisions": int(m["collision"].sum()),
                     "per_episode": {k: [float(x) for x in v] for k, v in m.items()}}
@@ -267,10 +274,12 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
                 hmax = max(hmax, float(m["max_head_gap"].max()))
             traces[f"{prof}_without_layer"] = res[next(iter(res))][1]
             traces[f"{prof}_without_layer_close"] = res[list(res)[1]][1] if len(res) > 1 else None
+            bar.update()
         traces = {k: v for k, v in traces.items() if v is not None}
         report["acceptance"]["no_layer_zero_collisions"] = coll == 0
         report["acceptance"]["no_layer_min_gap_after_warmup"] = gmin
         report["acceptance"]["no_layer_max_head_gap"] = hmax
         report["acceptance"]["no_layer_gap_within_bounds"] = bool(gmin >= e.s_min - 1e-6 and hmax <= e.s_max + 1e-6)
+    bar.close()
     report["acceptance"]["pass"] = all(v for k, v in report["acceptance"].items() if isinstance(v, bool))
     return report, traces
