@@ -200,9 +200,17 @@ class TrafficEnv(EnvBase):
         self.cav_sum = torch.zeros(B, sc.n_cav, **f)
 
     # ------------------------------------------------------------------ helpers
-    def _initial_positions(self, k: int) -> tuple[Tensor, Tensor]:
-        """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of ``k`` rows being reset."""
+    def _initial_positions(self, rows: Tensor) -> tuple[Tensor, Tensor]:
+        """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of the rows being reset.
+
+        Centre-to-centre spacing per row: ``init_spacing_range`` (a bumper gap drawn per
+        episode) or ``init_spacing_rows`` (row ``i`` takes entry ``i % len``) when set, else
+        ``init_spacing``, else the ring's even spacing ``L / n`` (open road: the equilibrium
+        gap), which ``init_wave`` turns into one stop-and-go wave. Draws from the env's
+        generator in a fixed order: ring length, wave phase, start gap.
+        """
         sc = self.scenario
+        k = int(rows.numel())
         f = dict(dtype=torch.float32, device=self.device)
         idx = torch.arange(sc.n_vehicles, **f)
         lo, hi = sc.ring_lengths
@@ -213,30 +221,25 @@ class TrafficEnv(EnvBase):
         else:
             L = torch.full((k, 1), float(sc.ring_length), **f)
             spacing = torch.full((k, 1), sc.initial_spacing() + sc.vehicle_length, **f)
+        phi = 2 * torch.pi * torch.rand(k, 1, generator=self.rng).to(**f) if sc.init_wave > 0 else None
+        if sc.init_spacing_range is not None:
+            g_lo, g_hi = sc.init_spacing_range
+            if sc.is_ring:
+                g_hi = min(g_hi, sc.ring_length / sc.n_vehicles - sc.vehicle_length)
+            spacing = (g_lo + (g_hi - g_lo) * torch.rand(k, 1, generator=self.rng)).to(self.device) + sc.vehicle_length
+            phi = None
+        elif sc.init_spacing_rows is not None:
+            gaps = torch.tensor(sc.init_spacing_rows, **f)
+            spacing = gaps[rows % len(gaps)].unsqueeze(-1) + sc.vehicle_length
+            phi = None
         offs = -spacing * idx
-        if sc.init_wave > 0:
+        if phi is not None:
             # gaps g (1 + A sin(2 pi i / n + phi)): one stop-and-go wave around the ring, random phase
             gap = spacing - sc.vehicle_length
-            phi = 2 * torch.pi * torch.rand(k, 1, generator=self.rng).to(**f)
             gaps = gap * (1 + sc.init_wave * torch.sin(2 * torch.pi * idx / sc.n_vehicles + phi))
             offs = -torch.cumsum(gaps + sc.vehicle_length, dim=-1)
             offs = offs - offs[:, :1]
         return (torch.remainder(offs, L) if sc.is_ring else offs), L
-
-    def _random_offsets(self, k: int) -> Tensor:
-        """Start positions of ``k`` rows with the bumper gap drawn from ``init_spacing_range``."""
-        sc = self.scenario
-        lo, hi = sc.init_spacing_range
-        if sc.is_ring:
-            hi = min(hi, sc.ring_length / sc.n_vehicles - sc.vehicle_length)
-        s = lo + (hi - lo) * torch.rand(k, 1, generator=self.rng)
-        return self._offsets(s.to(self.device))
-
-    def _offsets(self, gap: Tensor) -> Tensor:
-        """Start positions ``[k, n]`` for bumper gaps ``[k, 1]`` (head at 0, the others behind)."""
-        sc = self.scenario
-        offs = -(gap + sc.vehicle_length) * torch.arange(sc.n_vehicles, dtype=torch.float32, device=self.device)
-        return torch.remainder(offs, sc.ring_length) if sc.is_ring else offs
 
     def _v_eq(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
@@ -309,12 +312,7 @@ class TrafficEnv(EnvBase):
         idx = mask.nonzero().squeeze(-1)
         k = int(idx.numel())
         if k:
-            self.pos[idx], self.ring_len[idx] = self._initial_positions(k)
-            if sc.init_spacing_range is not None:
-                self.pos[idx] = self._random_offsets(k)
-            elif sc.init_spacing_rows is not None:
-                rows = torch.tensor(sc.init_spacing_rows, dtype=torch.float32, device=self.device)
-                self.pos[idx] = self._offsets(rows[idx % len(rows)].unsqueeze(-1))
+            self.pos[idx], self.ring_len[idx] = self._initial_positions(idx)
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
