@@ -41,6 +41,12 @@ class CarFollowingCAV(nn.Module):
         return a.clamp(self.low, self.high)
 
 
+def action_bounds(env) -> tuple[float, float]:
+    """``(low, high)`` of the CAV acceleration command of ``env`` (first element of its action spec)."""
+    spec = env.action_spec
+    return float(spec.space.low.flatten()[0]), float(spec.space.high.flatten()[0])
+
+
 def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
                         **param_overrides) -> TensorDictModule:
     """IDM (SUMO's defaults, as the ring's humans) or OVM (DeeP-LCC's set) driving every CAV.
@@ -59,11 +65,11 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
     if low is None or high is None:
         if env is None:
             raise ValueError("make_classic_policy: pass env (for the action bounds) or low and high")
-        spec = env.action_spec
-        low = float(spec.space.low.flatten()[0]) if low is None else low
-        high = float(spec.space.high.flatten()[0]) if high is None else high
+        env_low, env_high = action_bounds(env)
+        low = env_low if low is None else low
+        high = env_high if high is None else high
     return TensorDictModule(CarFollowingCAV(model, params, low, high),
                             in_keys=[("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")], out_keys=["action"])
 
 
-__all__ = ["make_classic_policy", "CarFollowingCAV", "CLASSIC"]
+__all__ = ["make_classic_policy", "action_bounds", "CarFollowingCAV", "CLASSIC"]

@@ -33,6 +33,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from mixed_traffic.controllers.classic import CarFollowingCAV, action_bounds
 from mixed_traffic.physics import car_following_accel, idm_equilibrium_speed
 
 Tensor = torch.Tensor
@@ -131,17 +132,17 @@ class PISaturation(nn.Module):
         return ((v_cmd - speed) / self.dt).clamp(self.low, self.high)
 
 
-class HumanCAV(nn.Module):
+class HumanCAV(CarFollowingCAV):
     """The humans' car-following model driving the CAV, with optional per-step noise.
 
-    ``noise > 0`` adds ``N(0, noise)`` to the acceleration from the module's own
-    generator (seeded by ``seed``), as the env does for its humans: the all-human ring.
+    :class:`~mixed_traffic.controllers.classic.CarFollowingCAV` plus ``N(0, noise)`` added
+    to the acceleration (before the clip) from the module's own generator (seeded by
+    ``seed``), as the env does for its humans: the all-human ring.
     """
 
-    def __init__(self, model: str, params: dict, *, low: float, high: float, noise: float = 0.0, seed: int = 0):
-        super().__init__()
-        self.model, self.params = model, dict(params)
-        self.low, self.high, self.noise = float(low), float(high), float(noise)
+    def __init__(self, model: str, params, *, low: float, high: float, noise: float = 0.0, seed: int = 0):
+        super().__init__(model, params, low, high)
+        self.noise = float(noise)
         self.rng = torch.Generator().manual_seed(int(seed))
 
     def forward(self, gap: Tensor, speed: Tensor, leader_speed: Tensor) -> Tensor:
@@ -174,13 +175,12 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     if name not in DAMPERS:
         raise ValueError(f"damper {name!r} is invalid; allowed: {list(DAMPERS)}")
     sc = _scenario(env)
-    spec = env.action_spec
-    low, high = float(spec.space.low.flatten()[0]), float(spec.space.high.flatten()[0])
+    low, high = action_bounds(env)
     params = dataclasses.asdict(sc.hdv_defaults())
     base = [("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")]
     if name in ("human", "idm"):
         noise = sc.accel_noise if name == "human" else 0.0
-        module = HumanCAV(sc.hdv_model, params, low=low, high=high, noise=noise, seed=seed)
+        module = HumanCAV(sc.hdv_model, sc.hdv_defaults(), low=low, high=high, noise=noise, seed=seed)
         return TensorDictModule(module, in_keys=base, out_keys=["action"])
     if name == "follower_stopper":
         if sc.hdv_model != "idm" and kwargs.get("U") is None:
