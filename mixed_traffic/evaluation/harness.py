@@ -63,7 +63,7 @@ class Trace:
     raw_accel: torch.Tensor  # the command before the safety layer (= cav_accel without a layer)
 
 
-def _first_done_mask(done: torch.Tensor) -> torch.Tensor:
+def first_done_mask(done: torch.Tensor) -> torch.Tensor:
     """True up to and including each row's first done step."""
     d = done.long()
     before = torch.cumsum(d, dim=1) - d  # dones strictly before t
@@ -75,7 +75,7 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     """Per-episode metrics of a ``[episodes, T]`` rollout (see the module docstring)."""
     nxt = td.get("next")
     done = nxt.get("done").squeeze(-1)
-    valid = _first_done_mask(done)
+    valid = first_done_mask(done)
     t = nxt.get(("traffic", "time")).squeeze(-1)
     after = valid & (t >= warmup)
     gap = nxt.get(("cav", "gap"))[..., 0]

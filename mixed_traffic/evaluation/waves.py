@@ -42,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from mixed_traffic.evaluation.harness import first_done_mask
 from mixed_traffic.physics import idm_equilibrium_speed
 
 WAVE_METRICS = ("mean_speed", "speed_std", "hard_brakes_per_vkm", "fuel_ml_per_vkm", "throughput", "min_gap",
@@ -74,9 +75,7 @@ def wave_metrics(td: TensorDictBase, *, dt: float, warmup: float, hard_brake: fl
                  cav_indices=(0,)) -> dict[str, torch.Tensor]:
     """Per-episode wave metrics of a ``[E, T]`` rollout of a ring without a head (module docstring)."""
     nxt = td.get("next")
-    done = nxt.get("done").squeeze(-1)
-    d = done.long()
-    valid = (torch.cumsum(d, 1) - d) == 0  # up to and including the first done
+    valid = first_done_mask(nxt.get("done").squeeze(-1))
     t = nxt.get(("traffic", "time")).squeeze(-1)
     after = valid & (t > warmup + 1e-9)
     v = nxt.get(("traffic", "speed"))
