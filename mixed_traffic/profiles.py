@@ -198,6 +198,53 @@ class PiecewiseLinear:
         return _interp(t, torch.tensor(self.times, dtype=t.dtype), torch.tensor(self.speeds, dtype=t.dtype))
 
 
+@dataclass(frozen=True)
+class RowProfiles:
+    """A different profile per batch row: row ``i`` follows ``parts[i % len(parts)]``.
+
+    Lets one batched env run several head profiles side by side (the evaluation runs
+    all its profiles in one rollout). Parameters per row: ``[part index, part params...]``
+    padded to the widest part. The env calls :meth:`sample_rows` with the row indices it
+    resets, so a row keeps its part across resets.
+
+    >>> import torch
+    >>> from mixed_traffic.profiles import Constant, RowProfiles
+    >>> prof = RowProfiles((Constant(10.0), Constant(20.0)))
+    >>> prof.speed(torch.zeros(3), prof.sample(3)).tolist()
+    [10.0, 20.0, 10.0]
+    """
+
+    parts: tuple = ()
+
+    def __post_init__(self):
+        if not self.parts:
+            raise ValueError("RowProfiles: parts is empty; allowed: one or more profiles")
+
+    def sample_rows(self, rows: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        rows = torch.as_tensor(rows, dtype=torch.long).reshape(-1)
+        which = rows % len(self.parts)
+        drawn = [part.sample(int((which == j).sum()), generator) for j, part in enumerate(self.parts)]
+        width = max(d.shape[-1] for d in drawn)
+        out = torch.zeros(rows.numel(), 1 + width)
+        out[:, 0] = which.float()
+        for j, d in enumerate(drawn):
+            out[which == j, 1:1 + d.shape[-1]] = d.float()
+        return out
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        return self.sample_rows(torch.arange(batch), generator)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        which = params[:, 0].long()
+        out = torch.empty_like(t)
+        for j, part in enumerate(self.parts):
+            m = which == j
+            if bool(m.any()):
+                k = part.sample(0).shape[-1]
+                out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
+        return out
+
+
 def deeplcc_brake(start: float = 0.0, v0: float = 15.0) -> PiecewiseLinear:
     """DeeP-LCC brake: -5 m/s^2 for 2 s from v0, hold 5 s, +2 m/s^2 for 5 s."""
     return PiecewiseLinear(times=(0.0, start, start + 2.0, start + 7.0, start + 12.0),
@@ -260,4 +307,4 @@ def make_profile(name: str, **kwargs):
 
 
 __all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomPerturbation", "Sine",
-           "PiecewiseLinear", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]
+           "PiecewiseLinear", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

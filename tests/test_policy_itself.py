@@ -222,3 +222,57 @@ def test_new_config_fields_are_validated(override, field):
 
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         validate_config(compose(["experiment=ring_lagrangian_ppo", override]))
+
+
+# ----------------------------------------------------------------------------- one batched evaluation rollout
+def test_row_profiles_give_each_row_its_part_across_resets():
+    from mixed_traffic.profiles import Constant, RowProfiles, Sine
+
+    prof = RowProfiles((Constant(10.0), Sine(v_star=20.0, amplitude=0.0), Constant(5.0)))
+    env = make_env("ring", batch_size=6, seed=0)
+    env.set_profile(prof)
+    env.reset()
+    head = env.profile.speed(torch.zeros(6), env.profile_params)
+    assert head.tolist() == [10.0, 20.0, 5.0, 10.0, 20.0, 5.0]
+    # a partial reset of rows 2 and 4 keeps their parts
+    from tensordict import TensorDict
+    env.reset(TensorDict({"_reset": torch.tensor([False, False, True, False, True, False])[:, None]}, [6]))
+    assert env.profile.speed(torch.zeros(6), env.profile_params).tolist() == head.tolist()
+    with pytest.raises(ValueError, match="parts"):
+        RowProfiles(())
+
+
+def test_safety_layer_active_rows_leave_the_other_rows_raw():
+    from torchrl.envs import TransformedEnv
+
+    from transforms import SafetyLayer
+
+    layer = SafetyLayer(s_min=5.0, s_max=40.0)
+    env = TransformedEnv(make_env("ring", batch_size=4, seed=0, init_spacing=8.0), layer)
+    layer.set_active_rows(torch.tensor([True, False, True, False]))
+    td = env.rollout(300, lambda td: td.set("action", torch.full((4, 1), 3.0)), break_when_any_done=False)
+    hit = td["next", "collision"].any(1).squeeze(-1)
+    assert hit.tolist() == [False, True, False, True]
+    clipped = td["next", "safety", "clipped"].any(1).squeeze(-1)
+    assert clipped.tolist() == [True, False, True, False]
+    layer.set_active_rows(torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="active_rows"):
+        env.rollout(2, lambda td: td.set("action", torch.zeros(4, 1)))
+
+
+def test_batched_evaluation_matches_one_profile_at_a_time():
+    """The one-rollout evaluation runs the same episodes as separate runs per profile and start."""
+    from mixed_traffic.evaluation.harness import run_batched, run_profile
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_scratch", "eval.hdv_param_noise=0.0",
+                   "eval.profiles=[emergency_brake,sine]"] + SHORT[:4] + ["eval.profile_kwargs.emergency_brake.start=10.0"])
+    idm = lambda env: make_classic_policy("idm", env, s0=6.0)  # noqa: E731
+    with_layer, free = run_batched(cfg, None, ["emergency_brake", "sine"], episodes=2, seed=0, policy_factory=idm,
+                                   layer_free=True)
+    for prof in ("emergency_brake", "sine"):
+        m, _ = run_profile(cfg, None, prof, episodes=2, seed=0, policy_factory=idm)
+        assert torch.allclose(with_layer[prof][0]["return"], m["return"], atol=1e-3)
+        m8, _ = run_profile(cfg, None, prof, episodes=2, seed=0, policy_factory=idm, without=("safety_layer", "intervention_cost"),
+                            init_spacing_rows=[8.0])
+        assert torch.allclose(free[prof]["8 m"][0]["return"], m8["return"], atol=1e-3)
+        assert torch.allclose(free[prof]["8 m"][0]["min_gap"], m8["min_gap"], atol=1e-4)

@@ -277,6 +277,18 @@ class SafetyLayer(Transform):
         self.action_key = action_key
         self.cav_keys = keys
         self.clipped_key, self.delta_key = out_keys
+        self.active_rows: Tensor | None = None
+
+    def set_active_rows(self, mask: Tensor | None) -> None:
+        """Apply the layer only on the batch rows where ``mask`` (bool ``[B]``) is True.
+
+        The other rows execute the command unchanged (bounded to the action box), as if the
+        layer were not in the chain: one batch then evaluates a policy with and without its
+        safety net side by side. ``None`` (the default) applies the layer on every row.
+        """
+        if mask is not None:
+            mask = torch.as_tensor(mask, dtype=torch.bool).reshape(-1)
+        self.active_rows = mask
 
     # -------------------------------------------------------------- env lookups
     @property
@@ -338,6 +350,11 @@ class SafetyLayer(Transform):
             leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
         )
         commanded = torch.minimum(torch.maximum(action, low), high)
+        if self.active_rows is not None:
+            if self.active_rows.numel() != action.shape[0]:
+                raise ValueError(f"SafetyLayer: active_rows has {self.active_rows.numel()} rows; allowed: the batch "
+                                 f"size {action.shape[0]}")
+            executed = torch.where(self.active_rows.to(action.device).unsqueeze(-1), executed, commanded)
         delta = executed - commanded
         tensordict.set(self.action_key, executed)
         # the input is a shallow clone: these entries reach `_step`, not the rollout

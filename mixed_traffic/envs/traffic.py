@@ -298,6 +298,22 @@ class TrafficEnv(EnvBase):
             "traffic": traffic,
         }
 
+    def set_profile(self, profile) -> None:
+        """Drive the head by ``profile`` (any object with ``sample``/``speed``) from the next reset on.
+
+        E.g. a :class:`~mixed_traffic.profiles.RowProfiles` runs several head profiles
+        side by side in one batch.
+        """
+        self.profile = profile
+        B = self.batch_size[0]
+        self.profile_params = self._sample_profile(torch.arange(B))
+
+    def _sample_profile(self, rows: Tensor) -> Tensor:
+        """Fresh profile parameters of the rows ``rows`` (row-aware profiles keep each row's part)."""
+        if hasattr(self.profile, "sample_rows"):
+            return self.profile.sample_rows(rows.cpu(), self.rng).to(self.device)
+        return self.profile.sample(int(rows.numel()), self.rng).to(self.device)
+
     # ------------------------------------------------------------------ EnvBase API
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed) if seed is not None else torch.seed() % (2**63))
@@ -316,7 +332,7 @@ class TrafficEnv(EnvBase):
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
-            self.profile_params[idx] = self.profile.sample(k, self.rng).to(self.device)
+            self.profile_params[idx] = self._sample_profile(idx)
             if sc.hdv_param_noise > 0:
                 base = params_as_tensors(self._hdv_base, (k, sc.n_vehicles), device=self.device)
                 for name in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0"):

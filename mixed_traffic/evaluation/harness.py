@@ -21,10 +21,11 @@ Metrics per episode (all from the env key contract):
   ``mean_abs_delta`` (m/s^2, mean |executed - commanded|),
 - ``length`` (s).
 
-The policy itself: with ``cfg.eval.without_layer`` every profile runs a second time with
-the safety layer (and the intervention cost) removed from the chain, so the policy's own
-command is executed, from the standard start and from each ``cfg.eval.close_starts``
-spacing (one batched env, the starts alternate across rows). Its results are in
+The policy itself: with ``cfg.eval.without_layer`` every profile also runs with the safety
+layer switched off on some rows (:meth:`transforms.SafetyLayer.set_active_rows`; the
+intervention cost is then 0), so the policy's own command is executed, from the standard
+start and from each ``cfg.eval.close_starts`` spacing. All profiles and starts share one
+batched rollout (:func:`run_batched`). Its results are in
 ``report["without_layer"][profile][start]`` and in ``report["acceptance"]``.
 """
 
@@ -44,7 +45,6 @@ from mixed_traffic.training.builders import make_transformed_env
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
            "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate",
            "mean_abs_delta", "length")
-LAYER_TRANSFORMS = ("safety_layer", "intervention_cost")
 TRAINING_ONLY = ("jerk_penalty",)  # reward shaping the evaluation leaves out (returns stay the task's)
 
 
@@ -177,22 +177,75 @@ def standard_spacing(cfg: DictConfig, profile: str) -> float:
     return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile))).initial_spacing()
 
 
-def run_without_layer(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None):
-    """The policy's own actions (no safety layer) from the standard and the close starts.
+def split_rows(m: dict, tr: Trace, rows: torch.Tensor) -> tuple[dict, Trace]:
+    """The metrics and trace of a subset of rows."""
+    return ({k: v[rows] for k, v in m.items()}, Trace(**{f: getattr(tr, f)[rows] for f in Trace.__dataclass_fields__}))
 
-    Returns ``{start label: (metrics, trace)}``, labels ``"standard (73.4 m)"``, ``"8 m"``, ...
-    """
+
+def start_labels(cfg: DictConfig, profile: str) -> tuple[list[float], list[str]]:
+    """Start gaps of the layer-free passes: the standard one, then ``cfg.eval.close_starts``."""
     starts = [standard_spacing(cfg, profile)] + [float(x) for x in (cfg.eval.close_starts or [])]
-    labels = [f"standard ({starts[0]:.1f} m)"] + [f"{x:g} m" for x in starts[1:]]
-    n = len(starts)
-    m, tr = run_profile(cfg, policy, profile, episodes=episodes * n, seed=seed, policy_factory=policy_factory,
-                        without=LAYER_TRANSFORMS, init_spacing_rows=starts)
-    out = {}
-    for j, label in enumerate(labels):
-        rows = torch.arange(j, episodes * n, n)
-        out[label] = ({k: v[rows] for k, v in m.items()},
-                      Trace(**{f: getattr(tr, f)[rows] for f in Trace.__dataclass_fields__}))
-    return out
+    return starts, [f"standard ({starts[0]:.1f} m)"] + [f"{x:g} m" for x in starts[1:]]
+
+
+def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, seed: int, policy_factory=None,
+                layer_free: bool = False):
+    """Every profile, with the layer and (``layer_free``) without it, in one batched rollout.
+
+    Row ``r`` follows ``profiles[r % P]`` (:class:`~mixed_traffic.profiles.RowProfiles`)
+    in variant ``(r // P) % V``: variant 0 runs with the chain as configured, variants
+    ``1..`` run with the safety layer switched off on their rows
+    (:meth:`transforms.SafetyLayer.set_active_rows`), from the standard start and from
+    each close start. The per-step cost of a small batch is mostly fixed overhead, so one
+    rollout of ``P * V * episodes`` rows takes about as long as one profile's.
+
+    Returns ``({profile: (metrics, trace)}, {profile: {start label: (metrics, trace)}})``.
+    """
+    from mixed_traffic.profiles import RowProfiles
+    from mixed_traffic.scenarios import get_scenario
+    from mixed_traffic.training.builders import env_kwargs
+
+    P = len(profiles)
+    starts = {p: start_labels(cfg, p) for p in profiles} if layer_free else {}
+    V = 1 + (len(next(iter(starts.values()))[0]) if layer_free else 0)
+    gaps = []  # start gap of row i % (P * V)
+    for i in range(P * V):
+        prof, var = profiles[i % P], (i // P) % V
+        gaps.append(standard_spacing(cfg, prof) if var == 0 else starts[prof][0][var - 1])
+    ov = eval_env_overrides(cfg, profiles[0])
+    ov["init_spacing_rows"] = tuple(gaps)
+    env = make_transformed_env(cfg, num_envs=P * V * episodes, seed=seed, without=TRAINING_ONLY, **ov)
+    base = env.base_env
+    parts = tuple(get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, p))).make_profile()
+                  for p in profiles)
+    base.set_profile(RowProfiles(parts))
+    rows = torch.arange(P * V * episodes)
+    variant = (rows // P) % V
+    if layer_free:
+        layers = [t for t in env.transform.transforms if hasattr(t, "set_active_rows")]
+        if not layers:
+            raise ValueError("evaluation: eval.without_layer needs a safety layer in transforms.chain")
+        for t in layers:
+            t.set_active_rows(variant == 0)
+    if policy_factory is not None:
+        policy = policy_factory(env)
+    steps = base.scenario.max_steps
+    bar = tqdm(total=steps, desc=f"evaluation ({len(rows)} episodes)", unit="step", leave=False, miniters=steps // 50,
+               disable=not cfg.get("trainer", {}).get("progress", True))
+    torch.manual_seed(seed)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(steps, policy, callback=lambda *_: bar.update(), break_when_any_done=False)
+    bar.close()
+    m, trace = episode_metrics(td, dt=base.scenario.dt, s_min=cfg.eval.s_min, s_max=cfg.eval.s_max,
+                               warmup=cfg.eval.warmup_seconds, settle=cfg.eval.settle_seconds)
+    env.close()
+    with_layer, without_layer = {}, {}
+    for j, prof in enumerate(profiles):
+        with_layer[prof] = split_rows(m, trace, rows[(rows % P == j) & (variant == 0)])
+        if layer_free:
+            without_layer[prof] = {label: split_rows(m, trace, rows[(rows % P == j) & (variant == v + 1)])
+                                   for v, label in enumerate(starts[prof][1])}
+    return with_layer, without_layer
 
 
 def aggregate(values: torch.Tensor) -> dict:
@@ -209,10 +262,11 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     """Evaluate over ``profiles``; returns the report dict and the traces (for plots).
 
     Pass ``policy`` (a module usable with any env of ``cfg``'s observation layout) or
-    ``policy_factory(env) -> policy``. ``runner`` runs one profile (default
-    :func:`run_profile`, the batched torch env; the SUMO evaluation passes its own).
+    ``policy_factory(env) -> policy``. By default every profile (and, with
+    ``cfg.eval.without_layer``, every layer-free start) runs in one batched torch rollout
+    (:func:`run_batched`); ``runner(cfg, policy, profile, ...)`` runs one profile at a time
+    instead (the SUMO evaluation passes its own).
     """
-    runner = run_profile if runner is None else runner
     profiles = list(profiles or cfg.eval.profiles)
     episodes = int(episodes or cfg.eval.episodes)
     seed = int(cfg.eval.seed if seed is None else seed)
@@ -220,12 +274,21 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)
-    layer_free = runner is run_profile and "safety_layer" in chain and cfg.eval.get("without_layer", False)
-    bar = tqdm(total=len(profiles) * (2 if layer_free else 1), desc="evaluation", unit="pass", leave=False,
-               disable=not cfg.get("trainer", {}).get("progress", True))
+    layer_free = runner is None and "safety_layer" in chain and cfg.eval.get("without_layer", False)
+    if runner is None:
+        results, free = run_batched(cfg, policy, profiles, episodes=episodes, seed=seed,
+                                    policy_factory=policy_factory, layer_free=layer_free)
+    else:
+        bar = tqdm(total=len(profiles), desc="evaluation", unit="profile", leave=False,
+                   disable=not cfg.get("trainer", {}).get("progress", True))
+        results, free = {}, {}
+        for prof in profiles:
+            bar.set_postfix_str(prof)
+            results[prof] = runner(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
+            bar.update()
+        bar.close()
     for prof in profiles:
-        bar.set_postfix_str(prof)
-        m, trace = runner(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
+        m, trace = results[prof]
         traces[prof] = trace
         report["profiles"][prof] = {
             "metrics": {k: aggregate(v) for k, v in m.items()},
@@ -234,7 +297,6 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         }
         for k in METRICS:
             all_m[k].append(m[k])
-        bar.update()
     cat = {k: torch.cat(v) for k, v in all_m.items() if v}
     ov = {k: aggregate(v)["mean"] for k, v in cat.items()}
     ov["collisions"] = int(cat["collision"].sum())
@@ -261,8 +323,7 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         report["without_layer"] = {}
         coll, gmin, hmax = 0, math.inf, -math.inf
         for prof in profiles:
-            bar.set_postfix_str(f"{prof}, layer removed")
-            res = run_without_layer(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
+            res = free[prof]
             report["without_layer"][prof] = {}
             for label, (m, _tr) in res.items():
                 report["without_layer"][prof][label] = {
@@ -274,12 +335,10 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
                 hmax = max(hmax, float(m["max_head_gap"].max()))
             traces[f"{prof}_without_layer"] = res[next(iter(res))][1]
             traces[f"{prof}_without_layer_close"] = res[list(res)[1]][1] if len(res) > 1 else None
-            bar.update()
         traces = {k: v for k, v in traces.items() if v is not None}
         report["acceptance"]["no_layer_zero_collisions"] = coll == 0
         report["acceptance"]["no_layer_min_gap_after_warmup"] = gmin
         report["acceptance"]["no_layer_max_head_gap"] = hmax
         report["acceptance"]["no_layer_gap_within_bounds"] = bool(gmin >= e.s_min - 1e-6 and hmax <= e.s_max + 1e-6)
-    bar.close()
     report["acceptance"]["pass"] = all(v for k, v in report["acceptance"].items() if isinstance(v, bool))
     return report, traces
