@@ -245,6 +245,13 @@ class _TrainerCommon:
 @dataclass
 class OnPolicyTrainerConfig(_TrainerCommon):
     kind: str = "on_policy"
+    # TorchRL collector: "single" (Collector, this process), "multi_sync" / "multi_async"
+    # (MultiSyncCollector / MultiAsyncCollector, `collector_workers` processes, each stepping
+    # num_envs / collector_workers rows), "ray" (RayCollector, one Ray actor a worker); see
+    # mixed_traffic.training.builders.make_collector and docs/scaling.md
+    collector: str = "single"
+    collector_workers: int = 1
+    ray_address: str | None = None  # collector=ray: null starts a local Ray; "auto" or "<host>:<port>" joins a cluster
     lr: float = 3e-4
     anneal_lr: bool = True
     epochs: int = 6

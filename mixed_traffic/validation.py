@@ -143,6 +143,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "trainer.total_frames": Int(0),  # 0: no training (a pure-MPC intersection experiment); ring loops need >= 1
     "trainer.num_envs": Int(1),
     "trainer.rollout_len": Int(1),
+    "trainer.collector": OneOf(("single", "multi_sync", "multi_async", "ray")),
+    "trainer.collector_workers": Int(1),
     "trainer.checkpoint_every": Int(0),
     "trainer.log_every": Int(1),
     "trainer.max_minutes": Real(0, lo_open=True, optional=True),

@@ -29,9 +29,10 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.loss.name not in LOSSES_OF[kind]:
         raise ValueError(f"loss: {cfg.loss.name!r} does not go with trainer={kind!r}; allowed losses: "
                          f"{list(LOSSES_OF[kind])} (pick an experiment=..., e.g. ring_dqn, to switch both)")
-    from mixed_traffic.training.builders import check_chain
+    from mixed_traffic.training.builders import check_chain, check_collector_config
 
     check_chain(cfg.transforms.chain)
+    check_collector_config(cfg)
     for k in ("total_frames", "num_envs", "rollout_len"):
         if int(cfg.trainer[k]) < 1:
             raise ConfigError(f"trainer.{k}", f"{cfg.trainer[k]!r} is out of range", "an integer >= 1")
@@ -40,6 +41,7 @@ def check_config(cfg: DictConfig) -> None:
 
 #: keys a resumed run may change freely (budgets, bookkeeping); everything else must match the checkpoint
 RESUME_FREE = ("resume", "resume_override", "out_dir", "threads", "checkpoint", "controller", "trainer.progress",
+               "trainer.collector", "trainer.ray_address",
                "trainer.max_minutes", "trainer.max_iterations", "trainer.checkpoint_every", "trainer.log_every",
                "eval.")
 #: keys the saved state depends on (network shapes, env batch, collector carrier): never changed on resume

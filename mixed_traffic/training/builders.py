@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import OneHot
-from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
 from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal, ValueOperator
 
 from mixed_traffic.envs import make_env
@@ -125,15 +125,20 @@ def desynchronize(env: EnvBase, seed: int) -> bool:
     instants in every row, every row truncates at once). Here each row's clock jumps to
     a uniform time in [0, episode); its rolling v_eq window is filled with the current
     head speed, so the reward stays consistent. Later episodes start at t = 0 as usual.
+    The SUMO ring (one row) moves its episode clock the same way: the head's profile and
+    the time limit follow that clock, the SUMO simulation itself is not touched.
     Returns False (and does nothing) for envs without that clock.
     """
     base = env
     while isinstance(base, TransformedEnv):
         base = base.base_env
+    g = torch.Generator().manual_seed(int(seed) + 7919)
+    if hasattr(base, "_head_hist") and isinstance(base.step_count, int):  # SUMO ring: one row, a python clock
+        base.step_count = int(torch.randint(0, base.scenario.max_steps, (1,), generator=g))
+        return True  # its v_eq window (the head's recent speeds) already holds the current head speed
     needed = ("step_count", "head_hist", "head_sum", "vel", "scenario")
     if not all(hasattr(base, a) for a in needed):
         return False
-    g = torch.Generator().manual_seed(int(seed) + 7919)
     B, window = base.head_hist.shape
     start = torch.randint(0, base.scenario.max_steps, (B,), generator=g).to(base.step_count)
     base.step_count = start
@@ -250,21 +255,152 @@ def make_qnet_policy(cfg: DictConfig, env: EnvBase) -> tuple[QValueActor, Tensor
     return qactor, to_accel
 
 
-def make_collector(cfg: DictConfig, env: EnvBase, policy, *, resume: dict | None = None):
-    """The TorchRL ``Collector`` of a training loop and its batch arithmetic.
+COLLECTORS = ("single", "multi_sync", "multi_async", "ray")
 
-    ``trainer.num_envs x trainer.rollout_len`` frames a batch, enough batches to reach
-    ``trainer.total_frames``; with ``trainer.desync_start`` (and not resuming) the rows
-    start at spread-out points of their episode clock. Returns
-    ``(collector, frames_per_batch, n_iterations)``.
+
+class DesyncStart(Transform):
+    """Applies :func:`desynchronize` once, at the env's first reset.
+
+    A collector worker builds and resets its own env inside its process, where the main
+    process cannot reach it; this transform puts the desynchronisation in that env
+    itself. Later resets (episode ends) are left alone. (No TorchRL transform moves an
+    env's episode clock, hence this one.)
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> env = TransformedEnv(make_env("ring", batch_size=4, seed=0), DesyncStart(seed=0))
+        >>> bool((env.reset()["traffic", "time"] == 0).all()) and bool((env.base_env.step_count > 0).any())
+        True
+    """
+
+    def __init__(self, seed: int):
+        super().__init__()
+        self.seed = int(seed)
+        self.done = False
+
+    def _reset(self, tensordict, tensordict_reset):
+        if not self.done:
+            self.done = True
+            desynchronize(self.parent, self.seed)
+        return tensordict_reset
+
+
+def worker_seed(seed: int, worker: int, start_iter: int = 0) -> int:
+    """Seed of collector worker ``worker``: the run seed for worker 0 of a fresh run, distinct otherwise."""
+    return (int(seed) + 1_000_003 * int(worker) + 7_919 * int(start_iter)) % (2**63)
+
+
+def make_worker_env(cfg: DictConfig, num_envs: int, seed: int, desync: bool) -> TransformedEnv:
+    """The env of one collector worker (module-level, so ``spawn`` and Ray can pickle it)."""
+    from mixed_traffic.training.run import set_threads
+
+    set_threads(cfg.threads)
+    env = make_transformed_env(cfg, num_envs=num_envs, seed=seed)
+    if desync:
+        env.append_transform(DesyncStart(seed))
+    return env
+
+
+def collector_rows(cfg: DictConfig) -> int:
+    """Rows of the env each collector process steps: ``num_envs / collector_workers`` past one process."""
+    tc = cfg.trainer
+    if tc.get("collector", "single") == "single":
+        return int(tc.num_envs)
+    return int(tc.num_envs) // int(tc.collector_workers)
+
+
+def check_collector_config(cfg: DictConfig) -> None:
+    """``trainer.collector`` / ``collector_workers`` against ``num_envs`` and the backend (before any work)."""
+    from mixed_traffic.validation import ConfigError
+
+    tc = cfg.trainer
+    kind, workers, rows = tc.get("collector", "single"), int(tc.get("collector_workers", 1)), int(tc.num_envs)
+    if kind not in COLLECTORS:
+        raise ConfigError("trainer.collector", f"unknown value {kind!r}", str(list(COLLECTORS)))
+    if kind != "single" and rows % workers:
+        raise ConfigError("trainer.num_envs", f"{rows} rows do not split over trainer.collector_workers={workers}",
+                          f"a multiple of {workers} (each worker steps num_envs / collector_workers rows)")
+    if cfg.env.get("backend") == "sumo":
+        per = rows if kind == "single" else rows // workers
+        if per != 1:
+            raise ConfigError(
+                "trainer.num_envs", f"{rows} with env.backend=sumo and trainer.collector={kind} (collector_workers="
+                f"{workers}) asks for {per} SUMO simulations in one process; libsumo runs one per process",
+                f"trainer.num_envs=1, or one SUMO process per row: trainer.collector=multi_sync "
+                f"trainer.collector_workers={rows} (or multi_async / ray)" if "collector" in tc else
+                f"trainer.num_envs=1 (trainer={tc.kind} collects in one process)")
+
+
+def make_collector(cfg: DictConfig, env: EnvBase, policy, *, resume: dict | None = None):
+    """The TorchRL collector of a training loop and its batch arithmetic.
+
+    ``trainer.collector`` picks TorchRL's own collector:
+
+    - ``single`` (default): :class:`torchrl.collectors.Collector` stepping ``env`` in this
+      process; with ``trainer.desync_start`` (and not resuming) the rows start at
+      spread-out points of their episode clock.
+    - ``multi_sync``: :class:`~torchrl.collectors.MultiSyncCollector`, ``collector_workers``
+      processes each stepping ``num_envs / collector_workers`` rows; every batch stacks all
+      workers' rollouts (``[num_envs, rollout_len]``, the same shape as ``single``).
+    - ``multi_async``: :class:`~torchrl.collectors.MultiAsyncCollector`, the same workers,
+      each batch is one worker's rollout (``[num_envs / workers, rollout_len]``) as soon
+      as it is ready (the other workers keep stepping meanwhile, one policy version behind).
+    - ``ray``: :class:`~torchrl.collectors.distributed.RayCollector` (``sync=True``), one
+      Ray actor per worker, on ``trainer.ray_address`` (null: a local Ray started with
+      ``collector_workers`` CPUs; ``auto``: the running cluster).
+
+    Past one process, each worker builds its own env (:func:`make_worker_env`, seed
+    :func:`worker_seed`; ``desync_start`` through :class:`DesyncStart`), so the SUMO
+    backend runs one simulation per worker; the loop pushes the new weights after each
+    update with ``collector.update_policy_weights_()``. ``env`` is then only used for
+    specs. Returns ``(collector, frames_per_batch, n_iterations)``.
     """
     from torchrl.collectors import Collector
 
+    check_collector_config(cfg)
     tc = cfg.trainer
+    kind = tc.get("collector", "single")
     fpb = tc.num_envs * tc.rollout_len
+    if kind == "single":
+        n_iters = max(1, math.ceil(tc.total_frames / fpb))
+        collector = Collector(env, policy, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
+                              auto_register_policy_transforms=False)
+        if tc.get("desync_start", False) and resume is None:
+            desynchronize(env, cfg.seed)
+        return collector, fpb, n_iters
+    import functools
+
+    workers, rows = int(tc.collector_workers), collector_rows(cfg)
+    start_iter = int(resume["iteration"]) if resume is not None else 0
+    desync = bool(tc.get("desync_start", False)) and resume is None
+    factories = [functools.partial(make_worker_env, cfg, rows, worker_seed(cfg.seed, i, start_iter), desync)
+                 for i in range(workers)]
+    if kind == "multi_async":
+        fpb = rows * tc.rollout_len  # one worker's rollout a batch
     n_iters = max(1, math.ceil(tc.total_frames / fpb))
-    collector = Collector(env, policy, frames_per_batch=fpb, total_frames=-1, device=cfg.device,
-                          auto_register_policy_transforms=False)
-    if tc.get("desync_start", False) and resume is None:
-        desynchronize(env, cfg.seed)
+    common = dict(frames_per_batch=fpb, total_frames=-1, device=cfg.device)
+    if kind in ("multi_sync", "multi_async"):
+        from torchrl.collectors import MultiAsyncCollector, MultiSyncCollector
+
+        cls = MultiSyncCollector if kind == "multi_sync" else MultiAsyncCollector
+        collector = cls(factories, policy, **common, auto_register_policy_transforms=False)
+    else:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            from mixed_traffic.validation import ConfigError
+
+            raise ConfigError("trainer.collector", "'ray' needs Ray, which is not installed",
+                              "'single', 'multi_sync', 'multi_async', or install the extra: pip install "
+                              "'mixed-traffic[ray]'") from None
+        from torchrl.collectors.distributed import RayCollector
+
+        address = tc.get("ray_address")
+        init = {"address": address} if address else {"num_cpus": workers}
+        common["total_frames"] = n_iters * fpb  # RayCollector stops at once with total_frames=-1
+        collector = RayCollector(factories, policy, **common, sync=True, num_collectors=workers,
+                                 collector_class=Collector, ray_init_config=init,
+                                 remote_configs={"num_cpus": 1},
+                                 collector_kwargs={"auto_register_policy_transforms": False})
+    collector.update_policy_weights_(policy)
     return collector, fpb, n_iters

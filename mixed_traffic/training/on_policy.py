@@ -22,7 +22,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from mixed_traffic.training import checkpoint as ck
-from mixed_traffic.training.builders import make_actor_critic, make_collector, make_transformed_env
+from mixed_traffic.training.builders import collector_rows, make_actor_critic, make_collector, make_transformed_env
 from mixed_traffic.training.metrics import batch_metrics
 from mixed_traffic.training.run import Run
 
@@ -57,10 +57,37 @@ def build_ppo(cfg: DictConfig, env):
     return actor, critic, loss, gae, penalty
 
 
+def restore_collection(cfg: DictConfig, env, collector, resume: dict) -> None:
+    """Put the collection side of a checkpoint back, as far as it can be; say what cannot.
+
+    The torch backend in one process (``trainer.collector=single``) restores exactly: the
+    simulator tensors and the collector's carrier, so episodes in flight continue. A SUMO
+    simulation's state lives inside SUMO and is not saved, and past one process the envs
+    live in the workers: then the episodes in flight are lost and collection restarts
+    from fresh episodes (the workers are seeded from the run seed and the iteration).
+    """
+    sumo = cfg.env.get("backend") == "sumo"
+    single = cfg.trainer.get("collector", "single") == "single"
+    if single and not sumo and resume.get("env") is not None and resume.get("collector") is not None:
+        ck.load_env_runtime_state(env, resume["env"])
+        ck.load_collector_state(collector, resume["collector"])
+        return
+    if single and sumo and resume.get("env"):  # its random generator: the next episodes draw as they would have
+        ck.load_env_runtime_state(env, {k: v for k, v in resume["env"].items()
+                                        if isinstance(v, tuple) and v and v[0] == "generator"})
+    why = ("a SUMO simulation's state (vehicles, SUMO's clock) cannot be saved" if sumo else
+           f"trainer.collector={cfg.trainer.collector}: the envs live in the collector's workers"
+           if not single else "the checkpoint was written by a multi-process collector")
+    print(f"resume: restored the learner, optimiser, Lagrange multiplier, counters and RNG; not the episodes in "
+          f"flight ({why}): collection restarts from fresh episodes")
+
+
 def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dict:
     tc = cfg.trainer
     torch.manual_seed(cfg.seed)
-    env = make_transformed_env(cfg, num_envs=tc.num_envs, seed=cfg.seed)
+    single = tc.get("collector", "single") == "single"
+    # past one process the workers build their own envs; this one gives the specs
+    env = make_transformed_env(cfg, num_envs=collector_rows(cfg), seed=cfg.seed)
     actor, critic, loss_module, gae, penalty = build_ppo(cfg, env)
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
@@ -71,8 +98,7 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         optim.load_state_dict(resume["optim"])
         if penalty is not None:
             penalty.multiplier.load_state_dict(resume["lagrange"])
-        ck.load_env_runtime_state(env, resume["env"])
-        ck.load_collector_state(collector, resume["collector"])
+        restore_collection(cfg, env, collector, resume)
         ck.load_rng_state(resume["rng"])
         start_iter, frames = resume["iteration"], resume["frames"]
         run.elapsed_before = resume["wall_seconds"]
@@ -80,7 +106,8 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
     def payload(it):
         return {"model": loss_module.state_dict(), "optim": optim.state_dict(),
                 "lagrange": penalty.multiplier.state_dict() if penalty is not None else None,
-                "env": ck.env_runtime_state(env), "collector": ck.collector_state(collector),
+                "env": ck.env_runtime_state(env) if single else None,
+                "collector": ck.collector_state(collector) if single else None,
                 "rng": ck.rng_state(), "frames": frames, "kind": "ppo"}
 
     run.open_bar(start_iter)
@@ -94,6 +121,8 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
                 for g in optim.param_groups:
                     g["lr"] = tc.lr * (1.0 - it / n_iters)
             batch = next(data)
+            if batch.ndim > 2:  # multi_sync / ray: [workers, rows, T] -> [num_envs, T]
+                batch = batch.reshape(-1, batch.shape[-1])
             frames += batch.numel()
             m = batch_metrics(batch)
             if penalty is not None:
@@ -121,6 +150,8 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
                         if k in out.keys():
                             sums[k] = sums.get(k, 0.0) + float(out[k].detach().mean())
                     sums["grad_norm"] = sums.get("grad_norm", 0.0) + float(gn)
+            if not single:  # the workers' policy copies change only through TorchRL's weight sync
+                collector.update_policy_weights_(actor)
             m.update({k: v / max(n_updates, 1) for k, v in sums.items()})
             if penalty is not None:
                 m["lambda_next"] = penalty.update(m["mean_violation"])
@@ -141,6 +172,8 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         raise
     finally:
         collector.shutdown()
+        if not single:
+            env.close()  # the spec env (a SUMO one holds this process's libsumo)
         run.close()
     summary = {"name": cfg.name, "seed": cfg.seed, "algo": cfg.loss.name, "frames": frames,
                "iterations": it + 1, "wall_seconds": run.wall(), "completed": not stopped_early,
