@@ -108,9 +108,13 @@ def test_misspelt_key_in_a_yaml_file_fails(tmp_path):
     ("joblib", "JoblibLauncher"),
     ("joblib_local", "JoblibLauncher"),
     ("slurm", "SlurmLauncher"),
+    ("submitit_local", "LocalLauncher"),
     ("ray", "RayLauncher"),
 ])
 def test_launcher_configs_compose(launcher, target):
+    if launcher in ("slurm", "submitit_local"):
+        pytest.importorskip("hydra_plugins.hydra_submitit_launcher",
+                            reason="the slurm extra is not installed (pip install 'mixed-traffic[slurm]')")
     cfg = compose(["experiment=ring_ppo", f"hydra/launcher={launcher}"], return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith(target)
 

@@ -3,6 +3,8 @@
     mt-train experiment=ring_lagrangian_ppo seed=1
     mt-train experiment=ring_ppo loss=lagrangian_ppo transforms=safe
     mt-train -m experiment=ring_ppo seed=0,1,2 loss=ppo,lagrangian_ppo hydra/launcher=joblib
+    mt-train -m experiment=ring_ppo seed=0,1,2 hydra/launcher=ray          # Ray tasks (docs/scaling.md)
+    mt-train experiment=ring_ppo env.backend=sumo trainer.num_envs=2 trainer.collector=multi_sync trainer.collector_workers=2
     mt-train experiment=ring_lagrangian_ppo resume=outputs/runs/ring_lagrangian_ppo/<run>
     mt-train experiment=intersection_lppo_bff
 """

@@ -91,6 +91,8 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
     actor, critic, loss_module, gae, penalty = build_ppo(cfg, env)
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
+    if not single:
+        env.close()  # only its specs were needed; a SUMO one would hold this process's libsumo
     run = Run.start(cfg, out_dir, n_iters, fpb)
     start_iter, frames = 0, 0
     if resume is not None:
@@ -172,8 +174,6 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         raise
     finally:
         collector.shutdown()
-        if not single:
-            env.close()  # the spec env (a SUMO one holds this process's libsumo)
         run.close()
     summary = {"name": cfg.name, "seed": cfg.seed, "algo": cfg.loss.name, "frames": frames,
                "iterations": it + 1, "wall_seconds": run.wall(), "completed": not stopped_early,

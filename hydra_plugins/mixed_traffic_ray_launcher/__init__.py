@@ -1,0 +1,1 @@
+"""Hydra launcher running each multirun job as a Ray task (``hydra/launcher=ray``)."""
