@@ -125,3 +125,12 @@ def test_sumo_multi_process_resume_says_what_it_cannot_restore(tmp_path, capsys)
     assert "a SUMO simulation's state (vehicles, SUMO's clock) cannot be saved" in capsys.readouterr().out
     s = res["summary"]
     assert s["completed"] and s["frames"] == 120 and s["iterations"] == 3
+
+
+@pytest.mark.slow
+def test_multi_async_batches_are_one_workers_rollout(tmp_path):
+    """`multi_async`: each batch is one worker's rows; the run still reaches its frame budget."""
+    cfg = compose(PPO + ["trainer.collector=multi_async", "trainer.collector_workers=2", "trainer.num_envs=4",
+                         "trainer.rollout_len=10", "trainer.total_frames=80", "env.episode_seconds=1.0"])
+    s = train(cfg, out_dir=tmp_path)["summary"]
+    assert s["completed"] and s["frames"] == 80 and s["iterations"] == 4  # 2 rows x 10 steps a batch
