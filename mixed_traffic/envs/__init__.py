@@ -7,7 +7,7 @@ from torchrl.envs import EnvBase
 
 from mixed_traffic.scenarios import PRESETS
 
-SCENARIOS = sorted(PRESETS) + ["intersection"]
+SCENARIOS = sorted(PRESETS) + ["intersection", "platoon"]
 BACKENDS = ("torch", "sumo")
 
 
@@ -16,7 +16,8 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
     """Build a TorchRL environment.
 
     Args:
-        scenario: ``"ring"``, ``"deeplcc"`` or ``"intersection"``.
+        scenario: ``"ring"``, ``"deeplcc"``, ``"ring_wave"``, ``"intersection"`` or ``"platoon"``
+            (the DeeP-LCC platoon on the physics of the DeeP-LCC closed loop, :mod:`.platoon`).
         backend: ``"torch"`` (batched pure-torch simulator) or ``"sumo"`` (ring only,
             one libsumo simulation per process; batch through ``ParallelEnv``).
         batch_size: number of independent scenarios stepped together (torch backend).
@@ -42,6 +43,12 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
         from mixed_traffic.envs.intersection import IntersectionEnv
 
         env = IntersectionEnv(batch_size=batch_size, device=device, **overrides)
+    elif scenario == "platoon":
+        if backend != "torch":
+            raise ValueError("backend: the platoon scenario has only the 'torch' backend")
+        from mixed_traffic.envs.platoon import PlatoonEnv
+
+        env = PlatoonEnv(batch_size=batch_size, device=device, **overrides)
     elif backend == "sumo":
         if scenario != "ring":
             raise ValueError(f"backend 'sumo' supports scenario 'ring' only, got {scenario!r}")

@@ -116,16 +116,18 @@ def measure(pos: Tensor, vel: Tensor, cfg: PlatoonConfig, v_star: Tensor | float
 
 
 def step(pos: Tensor, vel: Tensor, u_cav: Tensor, v_head_next: Tensor, cfg: PlatoonConfig,
-         generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
+         generator: torch.Generator | None = None, params: dict | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Advance one step. Returns ``(pos', vel', executed_cav_accel [B, m])``.
 
     HDVs: car-following model + U[-noise, noise]; CAVs: ``u_cav`` clipped to
     ``[a_min, a_max]``, overridden by the emergency-braking rule (as in the reference).
+    ``params`` (optional) replaces the config's human-driver parameters, e.g. per-vehicle
+    tensors ``[B, n_followers]`` for a heterogeneous platoon.
     """
     B = pos.shape[0]
     g = gaps(pos, cfg)
     v, vl = vel[:, 1:], vel[:, :-1]
-    params = cfg._param_dict
+    params = cfg._param_dict if params is None else params
     acc = car_following_accel(cfg.hdv_model, g, v, vl, params)
     if cfg.accel_noise > 0:
         acc = acc + cfg.accel_noise * (2.0 * torch.rand(B, cfg.n_followers, dtype=DTYPE, generator=generator) - 1.0)
