@@ -116,6 +116,17 @@ class ResidualConfig:
 
 
 @dataclass
+class ResidualNNMPCConfig:
+    """``residual_nnmpc`` in the chain (RLMPC): executed = clip(NNMPC(window) + weight * action), action in [-1, 1].
+
+    ``checkpoint``: the frozen NNMPC (see :mod:`mixed_traffic.controllers.deeplcc.rlmpc`).
+    """
+
+    checkpoint: str = "outputs/deeplcc/nnmpc/nnmpc_bc_relabelled.pt"
+    weight: float = 1.0
+
+
+@dataclass
 class NonNegativeRewardConfig:
     """Reward ``max(J_max - J, 0) / J_max`` in [0, 1]; a collision gives ``collision_reward``."""
 
@@ -146,12 +157,26 @@ class TransformsConfig:
     residual_damper: ResidualDamperConfig = field(default_factory=ResidualDamperConfig)
     intervention_cost: InterventionCostConfig = field(default_factory=InterventionCostConfig)
     residual: ResidualConfig = field(default_factory=ResidualConfig)
+    residual_nnmpc: ResidualNNMPCConfig = field(default_factory=ResidualNNMPCConfig)
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
 
 
 # ----------------------------------------------------------------------------- policy
+
+
+@dataclass
+class WarmStartConfig:
+    """Warm Start RL: before PPO, fit the actor's deterministic action to an NNMPC's (BC on its closed loop).
+
+    ``nnmpc: null`` switches it off.
+    """
+
+    nnmpc: str | None = None
+    frames: int = 20000
+    epochs: int = 30
+    lr: float = 1e-3
 
 
 @dataclass
@@ -171,6 +196,7 @@ class PolicyConfig:
     log_std_min: float = -2.0
     log_std_max: float = 0.5
     value_bias_init: float = 0.0  # critic output bias at start (~ expected discounted return)
+    warm_start: WarmStartConfig = field(default_factory=WarmStartConfig)
 
 
 # ----------------------------------------------------------------------------- losses

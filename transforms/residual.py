@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 
@@ -30,6 +30,10 @@ class ResidualAction(Transform):
         base_out_key: the key the base writes (default ``base.out_keys[0]``).
         base_action_key: where the base action is logged (default ``("residual", "base_action")``).
         low, high: the clip range; default the parent's action bounds.
+        policy_bounds: ``(low, high)`` of the residual the policy outputs; the action spec
+            seen by the policy becomes ``Bounded(low, high)`` (e.g. ``(-1, 1)``: a policy whose
+            distribution is centred on 0 then starts as the base controller, and
+            ``weight`` is the largest correction in m/s^2). Default: the parent's bounds.
 
     Example:
         >>> from mixed_traffic import make_env
@@ -46,12 +50,17 @@ class ResidualAction(Transform):
     def __init__(self, base: TensorDictModuleBase, weight: float = 1.0, *, action_key: NestedKey = "action",
                  base_out_key: NestedKey | None = None,
                  base_action_key: NestedKey = ("residual", "base_action"),
-                 low: float | None = None, high: float | None = None):
+                 low: float | None = None, high: float | None = None,
+                 policy_bounds: tuple[float, float] | None = None):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if low is not None and high is not None and not low < high:
             raise ValueError(f"ResidualAction: low={low!r}, high={high!r} are invalid; allowed: low < high")
+        if policy_bounds is not None and not (len(policy_bounds) == 2 and policy_bounds[0] < policy_bounds[1]):
+            raise ValueError(f"ResidualAction: policy_bounds={policy_bounds!r} is invalid; allowed: (low, high) "
+                             "with low < high, or None")
         super().__init__(in_keys=[], out_keys=[base_action_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.policy_bounds = None if policy_bounds is None else (float(policy_bounds[0]), float(policy_bounds[1]))
         self.base = base
         self.weight = float(weight)
         self.action_key = action_key
@@ -99,6 +108,19 @@ class ResidualAction(Transform):
         spec = self.parent.full_action_spec[self.action_key]
         tensordict_reset.set(self.base_action_key, spec.zero())
         return tensordict_reset
+
+    def transform_action_spec(self, action_spec):
+        if self.policy_bounds is None:
+            return action_spec
+        lo, hi = self.policy_bounds
+        spec = action_spec[self.action_key] if isinstance(action_spec, Composite) else action_spec
+        new = Bounded(low=torch.full(spec.shape, lo, dtype=spec.dtype, device=spec.device),
+                      high=torch.full(spec.shape, hi, dtype=spec.dtype, device=spec.device),
+                      shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        if isinstance(action_spec, Composite):
+            action_spec[self.action_key] = new
+            return action_spec
+        return new
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         spec = self.parent.full_action_spec[self.action_key]

@@ -73,6 +73,7 @@ class PlatoonScenario:
     profiles: tuple[str, ...] = PROFILE_KINDS
     profile_weights: tuple[float, ...] | None = None  # None: uniform
     randomize: bool = True  # False: the evaluation's fixed brake start / sine phase / NEDC window
+    profile_rows: bool = False  # True: row i always runs profiles[i % len(profiles)] (evaluation batches)
     episode_seconds: float = 40.0  # includes the t_ini warm-up steps
     brake_start: tuple[float, float] = (1.0, 10.0)
     mismatch: str = "none"
@@ -283,27 +284,36 @@ class PlatoonEnv(EnvBase):
         return torch.where(self.adaptive[rows], mean, torch.full_like(mean, self.scenario.v_star))
 
     def _advance(self, rows: Tensor | slice, u: Tensor) -> tuple[Tensor, Tensor]:
-        """Step the rows ``rows`` with CAV input ``u``; push the instant into the window. Returns (J, executed)."""
+        """Step the rows ``rows`` with CAV input ``u``; push the instant into the window. Returns (J, executed).
+
+        ``rows=slice(None)`` (every row, the per-step case) avoids the gathers and scatters.
+        """
         sc = self.scenario
-        pos, vel = self.pos[rows], self.vel[rows]
+        every = isinstance(rows, slice)
+        pos, vel = (self.pos, self.vel) if every else (self.pos[rows], self.vel[rows])
         g = gaps(pos, self.cfg)
-        v_star = self.v_star[rows]
-        nxt = (self.k[rows] + 1).clamp(max=self.head_v.shape[1] - 1)
-        v_head_next = self.head_v[rows].gather(1, nxt[:, None]).squeeze(1)
-        params = {k: v[rows] for k, v in self.hdv.items()}
+        g_cav = g[:, self._ci]
+        v_star = self.v_star if every else self.v_star[rows]
+        k = self.k if every else self.k[rows]
+        head = self.head_v if every else self.head_v[rows]
+        v_head_next = head.gather(1, (k + 1).clamp(max=head.shape[1] - 1)[:, None]).squeeze(1)
+        params = self.hdv if every else {key: v[rows] for key, v in self.hdv.items()}
         new_pos, new_vel, executed = step(pos, vel, u, v_head_next, self.cfg, self.rng, params=params)
         J = (sc.weight_v * ((vel[:, 1:] - v_star[:, None]) ** 2).sum(-1)
-             + sc.weight_s * ((g[:, self._ci] - sc.s_star) ** 2).sum(-1)
+             + sc.weight_s * ((g_cav - sc.s_star) ** 2).sum(-1)
              + sc.weight_u * (executed ** 2).sum(-1))
-        self.w_vh[rows] = torch.cat([self.w_vh[rows, 1:], vel[:, :1]], -1)
-        self.w_v[rows] = torch.cat([self.w_v[rows, 1:], vel[:, None, 1:]], 1)
-        self.w_s[rows] = torch.cat([self.w_s[rows, 1:], g[:, None, self._ci]], 1)
-        self.w_u[rows] = torch.cat([self.w_u[rows, 1:], executed[:, None]], 1)
-        acc = torch.zeros_like(vel)
-        acc[:, 1:] = (new_vel[:, 1:] - vel[:, 1:]) / sc.dt
-        acc[:, 0] = (new_vel[:, 0] - vel[:, 0]) / sc.dt
-        self.pos[rows], self.vel[rows], self.acc[rows] = new_pos, new_vel, acc
-        self.k[rows] += 1
+        windows = (torch.cat([self.w_vh[rows, 1:], vel[:, :1]], -1),
+                   torch.cat([self.w_v[rows, 1:], vel[:, None, 1:]], 1),
+                   torch.cat([self.w_s[rows, 1:], g_cav[:, None]], 1),
+                   torch.cat([self.w_u[rows, 1:], executed[:, None]], 1))
+        acc = (new_vel - vel) / sc.dt
+        if every:
+            self.w_vh, self.w_v, self.w_s, self.w_u = windows
+            self.pos, self.vel, self.acc, self.k = new_pos, new_vel, acc, self.k + 1
+        else:
+            self.w_vh[rows], self.w_v[rows], self.w_s[rows], self.w_u[rows] = windows
+            self.pos[rows], self.vel[rows], self.acc[rows] = new_pos, new_vel, acc
+            self.k[rows] += 1
         self.v_star[rows] = self._current_v_star(rows)
         return J, executed
 
@@ -335,7 +345,7 @@ class PlatoonEnv(EnvBase):
     # ------------------------------------------------------------------ EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         sc = self.scenario
-        B, T = self.batch_size[0], sc.t_ini
+        B = self.batch_size[0]
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(B).cpu()
@@ -356,7 +366,10 @@ class PlatoonEnv(EnvBase):
     def _reset_rows(self, idx: Tensor) -> None:
         sc = self.scenario
         k, T, nf = int(idx.numel()), sc.t_ini, sc.n_vehicles - 1
-        kinds = torch.multinomial(self._weights, k, replacement=True, generator=self.rng)
+        if sc.profile_rows:
+            kinds = idx.cpu() % len(sc.profiles)
+        else:
+            kinds = torch.multinomial(self._weights, k, replacement=True, generator=self.rng)
         head = torch.empty(k, sc.total_steps + 1, dtype=DTYPE)
         for j in kinds.unique().tolist():
             sel = (kinds == j).nonzero().squeeze(-1)

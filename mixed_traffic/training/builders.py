@@ -75,6 +75,13 @@ def _residual_idm(tcfg, env):
     return ResidualAction(make_classic_policy(r.base, env), weight=r.weight)
 
 
+def _residual_nnmpc(tcfg, env):
+    from mixed_traffic.controllers.deeplcc.rlmpc import residual_nnmpc
+
+    r = tcfg.residual_nnmpc
+    return residual_nnmpc(r.checkpoint, weight=r.weight)
+
+
 def _state_discretizer(tcfg, env):
     from transforms import StateDiscretizer
 
@@ -88,6 +95,7 @@ TRANSFORMS: dict[str, Callable] = {
     "residual_damper": _residual_damper,
     "intervention_cost": _intervention_cost,
     "residual_idm": _residual_idm,
+    "residual_nnmpc": _residual_nnmpc,
     "jerk_penalty": _jerk_penalty,
     "state_discretizer": _state_discretizer,
 }

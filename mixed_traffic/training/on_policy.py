@@ -89,6 +89,11 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
     # past one process the workers build their own envs; this one gives the specs
     env = make_transformed_env(cfg, num_envs=collector_rows(cfg), seed=cfg.seed)
     actor, critic, loss_module, gae, penalty = build_ppo(cfg, env)
+    ws = cfg.policy.get("warm_start")
+    if ws is not None and ws.nnmpc and resume is None:  # Warm Start RL: the actor starts as the NNMPC
+        from mixed_traffic.controllers.deeplcc.rlmpc import warm_start_actor
+
+        warm_start_actor(actor, env, ws.nnmpc, frames=ws.frames, epochs=ws.epochs, lr=ws.lr, seed=cfg.seed)
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
     if not single:

@@ -1,0 +1,270 @@
+"""One comparison of every DeeP-LCC platoon controller, in the TorchRL platoon env.
+
+    python -m mixed_traffic.controllers.deeplcc.compare --out outputs/deeplcc/compare \\
+        --rl outputs/runs/deeplcc_lppo_s0 --warmstart outputs/runs/deeplcc_warmstart_s0 \\
+        --rlmpc outputs/runs/deeplcc_rlmpc_s0
+
+Scenarios of the same length run as one batched env. Controllers: ``hdv`` (all-HDV: the CAVs drive like the platoon's humans), ``qp`` (the exact
+DeeP-LCC QP on one homogeneous-OVM Hankel set, pre-collected with ``--qp-seed``), ``nnmpc``
+(the cached NNMPC), and the learned ``rl`` (Lagrangian PPO from scratch), ``warmstart``
+(actor initialised from the NNMPC) and ``rlmpc`` (residual over the NNMPC) from their run
+directories. Each runs the five evaluation scenarios of the DeeP-LCC package (random ±1,
+random ±5, brake at 1 s, sine ±5, NEDC; ``randomize=False``), ``--episodes`` rows each, with
+the humans of every ``--mismatch`` setting, behind the safety layer (s_min 5 m) and without
+it. The env is seeded with ``--seed`` (not a training seed): every controller meets the same
+head profiles and the same human noise. Deterministic policies.
+
+Metrics per scenario (mean over its rows; a row stops counting at its first collision):
+``cost`` (sum of the DeeP-LCC stage cost), ``fuel`` (mL, the reference's model over the
+vehicles from the first CAV to the tail), ``min_gap`` (m, every follower), ``collisions``
+(rows with one), ``clip_rate`` (share of CAV commands the safety layer changed). Per-step
+compute: median time of one decision at batch 1 on one CPU thread (for RLMPC the NNMPC and
+the actor).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mixed_traffic.controllers.deeplcc.closed_loop import fuel_rate
+
+SCENARIOS = {"random1": "random1", "random5": "random5", "brake": "brake", "sine": "sine5", "nedc": "nedc"}
+SECONDS = {"nedc": 330.0}
+CLASSICAL = ("hdv", "qp", "nnmpc")
+LEARNED = ("rl", "warmstart", "rlmpc")
+S_MIN = 5.0
+
+
+class HumanCAV(torch.nn.Module):
+    """All-HDV baseline: each CAV takes the acceleration its human model would (the env's human parameters)."""
+
+    def __init__(self, env):
+        super().__init__()
+        self.env = env.base_env if isinstance(env, TransformedEnv) else env
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+        from mixed_traffic.physics import car_following_accel
+
+        e = self.env
+        ci = list(e.scenario.cav_indices)
+        params = {k: v[:, [i - 1 for i in ci]].to(speed.dtype) for k, v in e.hdv.items()}
+        return car_following_accel(e.cfg.hdv_model, gap[:, ci], speed[:, ci], speed[:, [i - 1 for i in ci]], params)
+
+
+def hdv_policy(env) -> TensorDictModule:
+    return TensorDictModule(HumanCAV(env), in_keys=[("traffic", "gap"), ("traffic", "speed")], out_keys=["action"])
+
+
+def qp_policy(seed: int = 12345) -> TensorDictModule:
+    from mixed_traffic.controllers.deeplcc.controller import deeplcc_policy
+    from mixed_traffic.controllers.deeplcc.train import deployed_solver
+
+    _, solver = deployed_solver(seed)
+    return deeplcc_policy(solver)
+
+
+def groups(scenarios) -> list[tuple[str, ...]]:
+    """Scenarios of the same length run as one batched env (row i: scenario i % len)."""
+    short = tuple(s for s in scenarios if s not in SECONDS)
+    return ([short] if short else []) + [(s,) for s in scenarios if s in SECONDS]
+
+
+def build(controller: str, *, scenarios: tuple[str, ...], mismatch: str, episodes: int, seed: int, safety: bool,
+          runs: dict, nnmpc: str, qp_seed: int = 12345, cache: dict | None = None):
+    """``(env, policy)`` of one controller on a group of equally long scenarios, ``episodes`` rows each."""
+    from mixed_traffic import make_env
+    from transforms import SafetyLayer
+
+    ov = dict(profiles=[SCENARIOS[s] for s in scenarios], profile_rows=True, randomize=False, mismatch=mismatch,
+              episode_seconds=SECONDS.get(scenarios[0], 40.0))
+    rows = episodes * len(scenarios)
+    cache = {} if cache is None else cache
+    if controller in CLASSICAL:
+        base = make_env("platoon", batch_size=rows, seed=seed, **ov)
+        env = TransformedEnv(base, Compose(SafetyLayer(s_min=S_MIN, s_max=None)) if safety else Compose())
+        if controller == "hdv":
+            return env, hdv_policy(env)
+        if controller == "qp":
+            if "qp" not in cache:
+                cache["qp"] = qp_policy(qp_seed)
+            cache["qp"].module.reset()
+            return env, cache["qp"]
+        from mixed_traffic.controllers.deeplcc.rlmpc import nnmpc_base
+
+        return env, nnmpc_base(nnmpc, "--nnmpc")
+    from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
+    from mixed_traffic.training.builders import make_transformed_env
+
+    if controller not in runs or runs[controller] is None:
+        raise ValueError(f"--{controller}: no run directory given; allowed: a run directory or final.pt")
+    cfg, state = cache.get(controller) or checkpoint_config(runs[controller])
+    cache[controller] = (cfg, state)
+    without = () if safety else ("safety_layer", "intervention_cost")
+    env = make_transformed_env(cfg, num_envs=rows, seed=seed, without=without, **ov)
+    return env, policy_factory_from_state(cfg, state)(env)
+
+
+def rollout_metrics(env, policy, scenarios: tuple[str, ...]) -> dict:
+    """Roll one episode per row; metrics per scenario, averaged over its rows (see the module docstring)."""
+    base = env.base_env
+    steps = base.scenario.max_steps
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(steps, policy, break_when_any_done=False)
+    nxt = td["next"]
+    done = nxt["done"][..., 0]
+    valid = (done.long().cumsum(-1) - done.long()) == 0  # up to and including the first done
+    J = nxt["traffic", "J"][..., 0]
+    cost = (J * valid).sum(-1)
+    first = min(base.scenario.cav_indices)
+    v = td["traffic", "speed"][..., first:].double().numpy()
+    a = nxt["traffic", "accel"][..., first:].double().numpy()
+    fuel = torch.as_tensor((fuel_rate(v, a).sum(-1) * valid.numpy()).sum(-1) * base.dt)
+    gap = nxt["traffic", "gap"][..., 1:].min(-1).values
+    min_gap = torch.where(valid, gap, torch.full_like(gap, float("inf"))).min(-1).values
+    coll = (nxt["collision"][..., 0] & valid).any(-1)
+    clipped = nxt.get(("safety", "clipped"), None)
+    out = {}
+    row_scen = torch.arange(td.shape[0]) % len(scenarios)
+    for i, sc in enumerate(scenarios):
+        r = row_scen == i
+        m = {"cost": float(cost[r].mean()), "fuel": float(fuel[r].mean()), "min_gap": float(min_gap[r].min()),
+             "collisions": int(coll[r].sum()), "episodes": int(r.sum())}
+        if clipped is not None:
+            m["clip_rate"] = float(clipped[r][valid[r]].float().mean())
+        out[sc] = m
+    return out
+
+
+def per_step_compute(controller: str, runs: dict, nnmpc: str, repeats: int = 300, qp_seed: int = 12345,
+                     cache: dict | None = None) -> float:
+    """Median seconds of one decision at batch 1 (one thread) on a reset state (RLMPC: NNMPC + actor)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        env, policy = build(controller, scenarios=("random5",), mismatch="none", episodes=1, seed=0, safety=True,
+                            runs=runs, nnmpc=nnmpc, qp_seed=qp_seed, cache=cache)
+        td = env.reset()
+        base_mod = None
+        for t in env.transform:  # RLMPC: the NNMPC runs inside the residual transform
+            if hasattr(t, "base_action"):
+                base_mod = t.base
+        times = []
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            for i in range(repeats + 20):
+                t0 = time.perf_counter()
+                policy(td.clone(False))
+                if base_mod is not None:
+                    base_mod(td.clone(False))
+                if i >= 20:
+                    times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def compare(controllers, *, runs: dict, nnmpc: str, mismatches=("none", "idm"), scenarios=tuple(SCENARIOS),
+            episodes: int = 3, seed: int = 10_000, safety=(True, False), compute: bool = True, log=print) -> dict:
+    cache: dict = {}
+    res: dict = {"seed": seed, "episodes": episodes, "runs": {k: str(v) for k, v in runs.items() if v},
+                 "nnmpc": nnmpc, "results": {}, "compute_s": {}}
+    for mm in mismatches:
+        for sf in safety:
+            key = f"{mm}/{'layer' if sf else 'no_layer'}"
+            res["results"][key] = {}
+            for c in controllers:
+                res["results"][key][c] = {}
+                for gi, grp in enumerate(groups(scenarios)):
+                    t0 = time.perf_counter()
+                    env, pol = build(c, scenarios=grp, mismatch=mm, episodes=episodes, seed=seed + gi, safety=sf,
+                                     runs=runs, nnmpc=nnmpc, cache=cache)
+                    ms = rollout_metrics(env, pol, grp)
+                    res["results"][key][c].update(ms)
+                    if log:
+                        for sc, m in ms.items():
+                            log(f"{key:16s} {c:10s} {sc:8s} cost {m['cost']:12.1f} fuel {m['fuel']:8.1f} "
+                                f"min gap {m['min_gap']:6.2f} coll {m['collisions']}")
+                        log(f"  ({time.perf_counter() - t0:.0f} s)")
+    if compute:
+        for c in controllers:
+            res["compute_s"][c] = per_step_compute(c, runs, nnmpc, cache=cache)
+    return res
+
+
+def summary(res: dict) -> dict:
+    """RLMPC vs NNMPC per scenario, the QP's fuel saving vs all-HDV in the brake scenario."""
+    out = {}
+    for key, table in res["results"].items():
+        s = {}
+        if "rlmpc" in table and "nnmpc" in table:
+            d = {sc: 100.0 * (table["rlmpc"][sc]["cost"] / table["nnmpc"][sc]["cost"] - 1.0) for sc in table["nnmpc"]}
+            s["rlmpc_vs_nnmpc_pct"] = d
+            s["rlmpc_vs_nnmpc_mean_pct"] = float(np.mean(list(d.values())))
+        if "qp" in table and "hdv" in table and "brake" in table["qp"]:
+            s["qp_fuel_saving_brake_pct"] = 100.0 * (1.0 - table["qp"]["brake"]["fuel"] / table["hdv"]["brake"]["fuel"])
+        s["collisions"] = {c: sum(m["collisions"] for m in t.values()) for c, t in table.items()}
+        out[key] = s
+    return out
+
+
+def markdown(res: dict) -> str:
+    lines = []
+    for key, table in res["results"].items():
+        scen = list(next(iter(table.values())))
+        lines += [f"### {key}", "", "| controller | " + " | ".join(f"{s} cost" for s in scen)
+                  + " | fuel (mL, brake) | min gap (m) | collisions |",
+                  "|---" * (len(scen) + 4) + "|"]
+        for c, t in table.items():
+            lines.append(f"| {c} | " + " | ".join(f"{t[s]['cost']:.4g}" for s in scen)
+                         + f" | {t.get('brake', {}).get('fuel', float('nan')):.1f} | "
+                         f"{min(m['min_gap'] for m in t.values()):.2f} | {sum(m['collisions'] for m in t.values())} |")
+        lines.append("")
+    lines += ["| controller | per-step compute at batch 1 (us) |", "|---|---|"]
+    lines += [f"| {c} | {1e6 * s:.1f} |" for c, s in res["compute_s"].items()]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(prog="python -m mixed_traffic.controllers.deeplcc.compare", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--nnmpc", default=None, help="NNMPC checkpoint (default: the cached one)")
+    for c in LEARNED:
+        ap.add_argument(f"--{c}", default=None, help=f"run directory (or final.pt) of the {c} controller")
+    ap.add_argument("--controllers", nargs="*", default=None, help="default: hdv qp nnmpc + the runs given")
+    ap.add_argument("--mismatch", nargs="*", default=["none", "idm"], choices=["none", "idm", "hetero_ovm"])
+    ap.add_argument("--scenarios", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
+    ap.add_argument("--episodes", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=10_000)
+    ap.add_argument("--no-layer", action="store_true", help="also run every controller without the safety layer")
+    ap.add_argument("--no-compute", action="store_true", help="skip the per-step compute timing")
+    a = ap.parse_args(argv)
+    from mixed_traffic.controllers.deeplcc.rlmpc import DEFAULT_NNMPC
+
+    if a.episodes < 1:
+        ap.error(f"--episodes: {a.episodes} is invalid; allowed: >= 1")
+    runs = {c: getattr(a, c) for c in LEARNED}
+    controllers = a.controllers or [*CLASSICAL, *[c for c in LEARNED if runs[c]]]
+    res = compare(controllers, runs=runs, nnmpc=a.nnmpc or DEFAULT_NNMPC, mismatches=a.mismatch,
+                  scenarios=a.scenarios, episodes=a.episodes, seed=a.seed,
+                  safety=(True, False) if a.no_layer else (True,), compute=not a.no_compute)
+    res["summary"] = summary(res)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.json").write_text(json.dumps(res, indent=2))
+    md = markdown(res) + "\n\n```\n" + json.dumps(res["summary"], indent=2) + "\n```\n"
+    (out / "compare.md").write_text(md)
+    print(md)
+    return res
+
+
+if __name__ == "__main__":
+    main()

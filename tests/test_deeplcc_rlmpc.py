@@ -1,0 +1,104 @@
+"""RL on the DeeP-LCC platoon: RLMPC residual over the NNMPC, warm start, experiments, comparison."""
+
+import pytest
+import torch
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+
+from mixed_traffic.config import compose
+from mixed_traffic.controllers.deeplcc.nnmpc import NNMPC
+from mixed_traffic.training import train
+from mixed_traffic.training.builders import TRANSFORMS, make_actor_critic, make_transformed_env
+
+TINY = ["trainer.num_envs=4", "trainer.rollout_len=8", "trainer.total_frames=64", "trainer.epochs=1",
+        "trainer.minibatch_size=16", "trainer.progress=false", "env.episode_seconds=2.0"]
+
+
+@pytest.fixture
+def nnmpc_path(tmp_path):
+    torch.manual_seed(0)
+    net = NNMPC().eval()
+    p = tmp_path / "nnmpc.pt"
+    net.save(p)
+    return str(p)
+
+
+def test_rlmpc_env_starts_as_the_nnmpc(nnmpc_path):
+    cfg = compose(["experiment=deeplcc_rlmpc", f"transforms.residual_nnmpc.checkpoint={nnmpc_path}", *TINY])
+    env = make_transformed_env(cfg, num_envs=3, seed=0)
+    # the chain itself (RewardSum's running sum leaves its own bounded spec, as on every env)
+    base = env.base_env
+    check_env_specs(TransformedEnv(base, Compose(*[TRANSFORMS[n](cfg.transforms, base) for n in cfg.transforms.chain])))
+    assert float(env.action_spec.space.low.min()) == -1.0 and float(env.action_spec.space.high.max()) == 1.0
+    actor, _ = make_actor_critic(cfg, env)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(10, actor)
+    base = td["next", "residual", "base_action"]
+    executed = td["next", "cav", "accel"]
+    # a fresh actor's mean residual is ~0: the executed command is the NNMPC's (the layer rarely acts)
+    clipped = td["next", "safety", "clipped"]
+    diff = (executed - base).abs()[~clipped]
+    assert diff.numel() > 0 and float(diff.max()) < 0.1
+    # the residual is bounded by the weight (1 m/s^2)
+    with set_exploration_type(ExplorationType.RANDOM):
+        td = env.rollout(10, actor)
+    assert float((td["next", "cav", "accel"] - td["next", "residual", "base_action"]).abs().max()) <= 1.0 + 1e-5
+
+
+def test_missing_nnmpc_names_the_field_and_the_command(tmp_path):
+    cfg = compose(["experiment=deeplcc_rlmpc", f"transforms.residual_nnmpc.checkpoint={tmp_path / 'none.pt'}", *TINY])
+    with pytest.raises(FileNotFoundError, match="transforms.residual_nnmpc.checkpoint.*mt-dataset"):
+        make_transformed_env(cfg, num_envs=2, seed=0)
+
+
+@pytest.mark.parametrize("experiment", ["deeplcc_rlmpc", "deeplcc_lppo", "deeplcc_warmstart"])
+def test_experiments_train_through_mt_train_loop(experiment, nnmpc_path, tmp_path):
+    cfg = compose([f"experiment={experiment}", f"transforms.residual_nnmpc.checkpoint={nnmpc_path}",
+                   f"policy.warm_start.nnmpc={nnmpc_path}" if experiment == "deeplcc_warmstart" else "seed=0",
+                   "policy.warm_start.frames=64", "policy.warm_start.epochs=2", *TINY])
+    assert cfg.env.overrides.mismatch == "idm"  # the RL learns on the mismatched platoon
+    res = train(cfg, out_dir=tmp_path)
+    assert res["summary"]["completed"] and (tmp_path / "final.pt").is_file()
+    assert "lambda" in res["summary"]["final"]
+
+
+def test_warm_start_fits_the_actor_to_the_nnmpc(nnmpc_path):
+    from mixed_traffic.controllers.deeplcc.rlmpc import load_nnmpc, warm_start_actor
+
+    cfg = compose(["experiment=deeplcc_lppo", *TINY])
+    env = make_transformed_env(cfg, num_envs=8, seed=0)
+    actor, _ = make_actor_critic(cfg, env)
+    net = load_nnmpc(nnmpc_path)
+
+    def gap_to_nnmpc():
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            td = env.rollout(20, actor, break_when_any_done=False)
+            return float((td["action"] - net(td["uini"], td["yini"], td["eini"])).pow(2).mean())
+
+    before = gap_to_nnmpc()
+    out = warm_start_actor(actor, env, nnmpc_path, frames=640, epochs=40, lr=3e-3, log=None)
+    after = gap_to_nnmpc()
+    assert out["bc_mse"] < 0.5 * before and after < 0.5 * before
+
+
+def test_comparison_metrics_split_by_scenario(nnmpc_path):
+    from torchrl.envs import Compose, TransformedEnv
+
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.deeplcc import compare
+    from transforms import SafetyLayer
+
+    base = make_env("platoon", batch_size=4, seed=10_000, profiles=["random1", "brake"], profile_rows=True,
+                    randomize=False, mismatch="idm", episode_seconds=4.0)
+    env = TransformedEnv(base, Compose(SafetyLayer(s_min=5.0, s_max=None)))
+    pol = compare.build("nnmpc", scenarios=("brake",), mismatch="idm", episodes=1, seed=0, safety=True, runs={},
+                        nnmpc=nnmpc_path)[1]
+    m = compare.rollout_metrics(env, pol, ("random1", "brake"))
+    assert set(m) == {"random1", "brake"} and m["brake"]["episodes"] == 2
+    assert m["brake"]["cost"] > m["random1"]["cost"] > 0 and m["brake"]["fuel"] > 0
+    assert m["random1"]["collisions"] == 0 and 0 <= m["random1"]["clip_rate"] <= 1
+    hdv_env, hdv = compare.build("hdv", scenarios=("brake",), mismatch="idm", episodes=1, seed=0, safety=False,
+                                 runs={}, nnmpc=nnmpc_path)
+    td = hdv_env.reset()
+    a = hdv(td)["action"]
+    assert a.shape == (1, 2) and float(a.abs().max()) < 0.5  # at equilibrium a human barely accelerates
