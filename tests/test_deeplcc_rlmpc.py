@@ -102,3 +102,10 @@ def test_comparison_metrics_split_by_scenario(nnmpc_path):
     td = hdv_env.reset()
     a = hdv(td)["action"]
     assert a.shape == (1, 2) and float(a.abs().max()) < 0.5  # at equilibrium a human barely accelerates
+
+
+def test_per_step_compute_times_the_network_and_the_module(nnmpc_path):
+    from mixed_traffic.controllers.deeplcc import compare
+
+    t = compare.per_step_compute("nnmpc", {}, nnmpc_path, repeats=5)
+    assert set(t) == {"module", "network"} and 0 < t["network"] < 1.0 and 0 < t["module"] < 1.0

@@ -19,7 +19,7 @@ Metrics per scenario (mean over its rows; a row stops counting at its first coll
 vehicles from the first CAV to the tail), ``min_gap`` (m, every follower), ``collisions``
 (rows with one), ``clip_rate`` (share of CAV commands the safety layer changed). Per-step
 compute: median time of one decision at batch 1 on one CPU thread (for RLMPC the NNMPC and
-the actor).
+the actor), as plain torch on tensors and as the TorchRL module call (see :func:`per_step_compute`).
 """
 
 from __future__ import annotations
@@ -144,29 +144,74 @@ def rollout_metrics(env, policy, scenarios: tuple[str, ...]) -> dict:
     return out
 
 
+def _actor_mean_fn(actor):
+    """The actor's deterministic action as plain torch: trunk -> mean head -> tanh -> the action bounds."""
+    seq, prob = actor.module[0], actor.module[1]
+    trunk, head = seq.module[0].module, seq.module[1].module
+    low, high = prob.distribution_kwargs["low"], prob.distribution_kwargs["high"]
+
+    def f(obs):
+        loc = head.mean(trunk(obs))
+        return low + (torch.tanh(loc) + 1.0) * 0.5 * (high - low)
+
+    return f
+
+
 def per_step_compute(controller: str, runs: dict, nnmpc: str, repeats: int = 300, qp_seed: int = 12345,
-                     cache: dict | None = None) -> float:
-    """Median seconds of one decision at batch 1 (one thread) on a reset state (RLMPC: NNMPC + actor)."""
+                     cache: dict | None = None) -> dict:
+    """Median seconds of one decision at batch 1 on one CPU thread, on a reset state.
+
+    ``module``: the TorchRL policy call on the env's tensordict (RLMPC: plus the NNMPC
+    module of the residual transform); ``network``: the same arithmetic as plain torch on
+    tensors (NNMPC and actor networks, tanh, bounds, residual sum), i.e. what a deployed
+    controller computes.
+    """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         env, policy = build(controller, scenarios=("random5",), mismatch="none", episodes=1, seed=0, safety=True,
                             runs=runs, nnmpc=nnmpc, qp_seed=qp_seed, cache=cache)
         td = env.reset()
-        base_mod = None
-        for t in env.transform:  # RLMPC: the NNMPC runs inside the residual transform
-            if hasattr(t, "base_action"):
-                base_mod = t.base
-        times = []
+        res_t = next((t for t in env.transform if hasattr(t, "base_action")), None)
+        x = torch.cat([td["uini"], td["yini"], td["eini"]], -1)
+        obs = td["observation"]
+        if controller in LEARNED:
+            mean = _actor_mean_fn(policy)
+            if res_t is not None:
+                net, w = res_t.base.module, res_t.weight
+
+                def network():
+                    return (net.forward_flat(x) + w * mean(obs)).clamp(-5.0, 2.0)
+            else:
+                def network():
+                    return mean(obs)
+        elif controller == "nnmpc":
+            def network():
+                return policy.module.forward_flat(x)
+        elif controller == "qp":
+            def network():
+                return policy.module(td["uini"], td["yini"], td["eini"])
+        else:
+            def network():
+                return policy.module(td["traffic", "gap"], td["traffic", "speed"])
+
+        def module():
+            out = policy(td.clone(False))
+            if res_t is not None:
+                res_t.base(td.clone(False))
+            return out
+
+        out = {}
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            for i in range(repeats + 20):
-                t0 = time.perf_counter()
-                policy(td.clone(False))
-                if base_mod is not None:
-                    base_mod(td.clone(False))
-                if i >= 20:
-                    times.append(time.perf_counter() - t0)
-        return float(np.median(times))
+            for name, fn in (("module", module), ("network", network)):
+                times = []
+                for i in range(repeats + 20):
+                    t0 = time.perf_counter()
+                    fn()
+                    if i >= 20:
+                        times.append(time.perf_counter() - t0)
+                out[name] = float(np.median(times))
+        return out
     finally:
         torch.set_num_threads(threads)
 
@@ -227,8 +272,8 @@ def markdown(res: dict) -> str:
                          + f" | {t.get('brake', {}).get('fuel', float('nan')):.1f} | "
                          f"{min(m['min_gap'] for m in t.values()):.2f} | {sum(m['collisions'] for m in t.values())} |")
         lines.append("")
-    lines += ["| controller | per-step compute at batch 1 (us) |", "|---|---|"]
-    lines += [f"| {c} | {1e6 * s:.1f} |" for c, s in res["compute_s"].items()]
+    lines += ["| controller | per step, batch 1: network (us) | TorchRL module call (us) |", "|---|---|---|"]
+    lines += [f"| {c} | {1e6 * s['network']:.1f} | {1e6 * s['module']:.1f} |" for c, s in res["compute_s"].items()]
     return "\n".join(lines)
 
 
