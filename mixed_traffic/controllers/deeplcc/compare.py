@@ -289,7 +289,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--scenarios", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     ap.add_argument("--episodes", type=int, default=3)
     ap.add_argument("--seed", type=int, default=10_000)
-    ap.add_argument("--no-layer", action="store_true", help="also run every controller without the safety layer")
+    ap.add_argument("--layer", default="on", choices=["on", "off", "both"],
+                    help="behind the safety layer (on), without it (off) or both")
     ap.add_argument("--no-compute", action="store_true", help="skip the per-step compute timing")
     a = ap.parse_args(argv)
     from mixed_traffic.controllers.deeplcc.rlmpc import DEFAULT_NNMPC
@@ -300,7 +301,7 @@ def main(argv=None) -> dict:
     controllers = a.controllers or [*CLASSICAL, *[c for c in LEARNED if runs[c]]]
     res = compare(controllers, runs=runs, nnmpc=a.nnmpc or DEFAULT_NNMPC, mismatches=a.mismatch,
                   scenarios=a.scenarios, episodes=a.episodes, seed=a.seed,
-                  safety=(True, False) if a.no_layer else (True,), compute=not a.no_compute)
+                  safety={"on": (True,), "off": (False,), "both": (True, False)}[a.layer], compute=not a.no_compute)
     res["summary"] = summary(res)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
