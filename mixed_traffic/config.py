@@ -142,6 +142,34 @@ class DiscretizerConfig:
 
 
 @dataclass
+class BarrierForceConfig:
+    """Intersection barrier force filter (``transforms.barrier_force.BarrierForce``): ``u = v + rho dB_u + K dB_x``."""
+
+    rho: float = 0.2
+    K: float = 0.5
+
+
+@dataclass
+class ResidualNMPCConfig:
+    """``residual_nmpc`` in the chain: executed = clip(a_nmpc + weight * action) around the intersection NMPC."""
+
+    weight: float = 1.0
+
+
+@dataclass
+class ConflictCostConfig:
+    """Training-only intersection costs (``transforms.ConflictCost``), added to ``("next", "cost")``.
+
+    ``anticipation`` weighs the distance cost at the closest predicted approach over the next
+    ``horizon_s`` seconds (constant velocities); ``out_of_bounds`` is charged on leaving the road.
+    """
+
+    anticipation: float = 1.0
+    horizon_s: float = 1.5
+    out_of_bounds: float = 150.0
+
+
+@dataclass
 class TransformsConfig:
     """The env-side transform chain, applied in ``chain`` order.
 
@@ -161,6 +189,9 @@ class TransformsConfig:
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
+    barrier_force: BarrierForceConfig = field(default_factory=BarrierForceConfig)
+    residual_nmpc: ResidualNMPCConfig = field(default_factory=ResidualNMPCConfig)
+    conflict_cost: ConflictCostConfig = field(default_factory=ConflictCostConfig)
 
 
 # ----------------------------------------------------------------------------- policy
@@ -197,9 +228,35 @@ class PolicyConfig:
     log_std_max: float = 0.5
     value_bias_init: float = 0.0  # critic output bias at start (~ expected discounted return)
     warm_start: WarmStartConfig = field(default_factory=WarmStartConfig)
+    # observation features computed inside the networks: "none" or "intersection"
+    # (normalised observation + ego/agent relational features, see mixed_traffic.envs.intersection)
+    features: str = "none"
+    # further tensordict entries the networks read besides the observation (dotted nested keys,
+    # e.g. "residual.base_action": the base controller's action under residual_nmpc)
+    extra_in_keys: list[str] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- losses
+
+
+@dataclass
+class BCConfig:
+    """Optional behaviour-cloning term of the PPO losses (``losses.BCLoss`` on cached demonstrations).
+
+    ``coeff > 0`` switches it on: ``pretrain_steps`` Adam steps of BC before the first batch,
+    then ``+ w * loss_bc`` on every minibatch, ``w`` going linearly from ``coeff`` to
+    ``final_coeff`` over the run. Demonstrations (``observation``, ``expert_action``) come
+    from ``demos`` (a ``.pt`` file; made by the ``expert`` on ``episodes`` training episodes
+    when missing: ``python -m mixed_traffic.intersection.demos``).
+    """
+
+    coeff: float = 0.0
+    final_coeff: float | None = None  # None: constant coeff
+    pretrain_steps: int = 0
+    pretrain_lr: float = 1e-3
+    expert: str = "nmpc"
+    episodes: int = 384
+    demos: str | None = None  # None: outputs/demos/<expert>_seed<seed>_n<episodes>.pt
 
 
 @dataclass
@@ -228,6 +285,14 @@ class PPOLossConfig:
     lambda_method: str = "dual_ascent"  # "dual_ascent", "adam", "sgd" or "pid" (Stooke et al. 2020)
     lambda_kp: float = 0.0  # pid: proportional gain (the integral gain is lambda_lr)
     lambda_kd: float = 0.0  # pid: derivative gain
+    # 1: the reward is penalised (r - lambda c) before one GAE; 2: reward and cost critics, two GAEs,
+    # A = (A_R - lambda A_C) / (1 + lambda) in losses.LagrangianPPOLoss (lambda_method dual ascent on the batch cost)
+    critics: int = 1
+    reward_scale: float = 1.0  # rewards and costs are multiplied by this for the critics (after the lambda update)
+    bc: BCConfig = field(default_factory=BCConfig)
+    # > 0: residual policies are pulled towards the base controller: + residual_coeff * mean(a_res_det^2)
+    residual_coeff: float = 0.0
+
 
 
 @dataclass

@@ -28,7 +28,7 @@ def build_notebook():
              "print('observation [y, v, x_a, y_a, vx_a, vy_a, sx, sy]:', td['observation'][0].numpy().round(2))\n"
              "print('reward keys:', env.reward_keys)"),
         md("## The agent model\nEach behaviour's true paths (a few samples) and the perceived sigma over time."),
-        code("from mixed_traffic.intersection.agent_model import make_test_set, BEHAVIOURS\n"
+        code("from mixed_traffic.envs.intersection_agents import make_test_set, BEHAVIOURS\n"
              "bank = make_test_set(5, seed=1, horizon=120)\n"
              "fig, ax = plt.subplots(1, 2, figsize=(9, 4))\n"
              "colors = dict(zip(range(4), ['C0', 'C1', 'C2', 'C3']))\n"
@@ -61,13 +61,16 @@ def build_notebook():
              "        axes[row, col].axis('off')\n"
              "plt.tight_layout(); plt.show()"),
         md("## Lagrangian PPO (dual critics), small budget\nThe full runs use "
-           "`python -m mixed_traffic.intersection.train_lppo experiment=intersection_lppo` (see docs/intersection.md)."),
-        code("from mixed_traffic.intersection.train_lppo import TrainConfig, train\n"
+           "`mt-train experiment=intersection_lppo` (see docs/intersection.md); here the same config on a small budget."),
+        code("import tempfile\n"
+             "from mixed_traffic.config import compose\n"
+             "from mixed_traffic.training import train\n"
              "t0 = time.time()\n"
-             "cfg = TrainConfig(method='lppo', total_frames=8192 if SMALL else 400_000, num_envs=64 if SMALL else 256,\n"
-             "                  rollout_len=32, epochs=2 if SMALL else 4, minibatch_size=1024, eval_per_behaviour=0)\n"
-             "out = train(cfg)\n"
-             "print(f'trained {out[\"history\"][-1][\"frames\"]} frames in {time.time() - t0:.1f} s')\n"
+             "cfg = compose(['experiment=intersection_lppo', f'trainer.total_frames={8192 if SMALL else 400_000}',\n"
+             "               f'trainer.num_envs={64 if SMALL else 256}', f'trainer.epochs={2 if SMALL else 4}',\n"
+             "               'trainer.minibatch_size=1024', 'trainer.progress=false', 'logger=none'])\n"
+             "out = train(cfg, out_dir=tempfile.mkdtemp())\n"
+             "print(f'trained {out[\"summary\"][\"frames\"]} frames in {time.time() - t0:.1f} s')\n"
              "res_rl = evaluate_policy(out['actor'], n_per_behaviour=1 if SMALL else 20, record=[0])\n"
              "display(Markdown(format_table(res_rl.table, title='LPPO (small budget)')))"),
         code("fr = res_rl.frames[0]\n"

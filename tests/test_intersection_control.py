@@ -10,7 +10,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from mixed_traffic import make_env
-from mixed_traffic.intersection.agent_model import make_test_set
+from mixed_traffic.envs.intersection_agents import make_test_set
 from mixed_traffic.intersection.evaluate import evaluate_policy, format_table, summarise, write_gifs
 from mixed_traffic.intersection.nmpc import NMPCConfig, NMPCController, make_nmpc_policy, predict_agent
 from mixed_traffic.intersection.residual import BASE_KEY, ResidualNMPC

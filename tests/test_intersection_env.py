@@ -12,7 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from mixed_traffic import make_env
 from mixed_traffic.envs.intersection import EGO_X, IntersectionEnv
-from mixed_traffic.intersection.agent_model import (
+from mixed_traffic.envs.intersection_agents import (
     BEHAVIOURS,
     AgentTrajectories,
     load_recorded_trajectories,
@@ -253,3 +253,75 @@ def test_recorded_trajectories_roundtrip_and_errors(tmp_path):
         load_recorded_trajectories(str(tmp_path / "missing.npy"))
     with pytest.raises(ValueError, match="horizon"):
         IntersectionEnv(agent_trajectories=load_recorded_trajectories(rows, horizon=50), max_steps=100)
+
+
+def test_recorded_trajectories_carry_perception_error_and_route_labels(tmp_path):
+    rows = np.zeros((40, 8))
+    rows[:, 0] = np.linspace(3.0, -0.9, 40)
+    rows[:, 1] = 0.5
+    rows[:, 2] = -1.0
+    rows[:, 4:6] = 0.05
+    rows[:, 6] = 0.2  # perceived 0.2 m east of where the agent is
+    p = tmp_path / "agents.npy"
+    np.save(p, {"trajectories": np.stack([rows, rows]), "routes": ["straight", "left"]}, allow_pickle=True)
+    bank = load_recorded_trajectories(str(p), horizon=60)
+    assert bank.behaviour.tolist() == [0, 1]  # per-route tables keep the labels
+    assert torch.allclose(bank.observed[:, :40, 0] - bank.true[:, :40, 0], torch.tensor(0.2))
+    with pytest.raises(ValueError, match="routes"):
+        load_recorded_trajectories(rows, routes=["diagonal"])
+
+
+def _drive(bank, accel: float, steps: int = 60):
+    """Run every agent of ``bank`` against an ego holding ``accel`` (0: waits at the start); true x per step."""
+    env = IntersectionEnv(batch_size=len(bank), agent_trajectories=bank, agent_sampling="sequential")
+    td, xs = env.reset(), []
+    for _ in range(steps):
+        td["action"] = torch.full((len(bank), 1), accel)
+        td = env.step(td)["next"]
+        xs.append(td["agent", "true_pos"][:, 0].clone())
+    return torch.stack(xs, 1)
+
+
+def test_reactive_agents_answer_the_egos_motion():
+    from mixed_traffic.envs.intersection_agents import REACTIVE_PARAMS
+
+    bank = sample_agent_trajectories(3, seed=3, split="test", behaviours=["straight"], style="reactive")
+    assert bank.reactive.all()
+    a = REACTIVE_PARAMS.index("assertiveness")
+    bank.params[:, a] = torch.tensor([0.1, 0.55, 0.95])  # yields, hesitates, speeds up
+    bank.params[:, 0] = 3.5  # all start 3.5 m east
+    bank.params[:, 1] = 1.0  # nominal 1 m/s
+    bank.params[:, -1] = 1.0
+    waits, goes = _drive(bank, 0.0), _drive(bank, 0.5)
+    # with the ego waiting, every agent drives on alike
+    assert torch.allclose(waits[0], waits[1]) and torch.allclose(waits[1], waits[2])
+    # while the moving ego crosses: the yielder holds at its stop line, the hesitant one lags, the assertive
+    # one is ahead of where it would be had the ego waited
+    assert goes[0, 25] > waits[0, 25] + 0.5 and goes[1, 25] > waits[1, 25] + 0.5
+    assert goes[2, 25] < waits[2, 25] - 0.1
+    assert goes[0, -1] < 1.0  # the yielder goes on once the ego has crossed
+
+
+def test_stop_in_zone_agents_stop_on_the_egos_line_then_go_on():
+    bank = make_test_set(5, seed=11, behaviours=("straight", "left"), style="stop_in_zone")
+    x = bank.true[:, :, 0]
+    v = bank.true[:, :, 2:].norm(dim=-1)
+    stopped = v < 1e-3
+    first = stopped.float().argmax(1)
+    x_stop = x[torch.arange(len(bank)), first]
+    assert stopped.any(1).all() and ((x_stop > 0.1) & (x_stop < 0.5)).all()  # centre just past the ego's line
+    assert (x[:, -1] < x_stop - 0.5).all()  # and it leaves later
+    with pytest.raises(ValueError, match="behaviours"):
+        make_test_set(1, behaviours=("right",), style="stop_in_zone")
+
+
+def test_held_out_test_sets_have_200_episodes_each():
+    from omegaconf import OmegaConf
+
+    from mixed_traffic.intersection.evaluate import test_sets
+
+    sets = test_sets(OmegaConf.create({"episodes": 80, "seed": 2024}))
+    assert len(sets["standard"]) == 320 and len(sets["reactive"]) >= 200 and len(sets["stop_in_zone"]) >= 200
+    assert sets["reactive"].reactive.all() and not sets["stop_in_zone"].reactive.any()
+    train_env = IntersectionEnv(batch_size=1, agent_bank_size=64, reactive_fraction=0.25)
+    assert int(train_env.bank.reactive.sum()) == 16  # reactive agents also drive in training

@@ -4,6 +4,7 @@
 """
 
 from transforms.barrier_force import BarrierForce
+from transforms.conflict_cost import ConflictCost
 from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
 from transforms.intervention_cost import InterventionCost
@@ -25,4 +26,5 @@ __all__ = [
     "ResidualAction",
     "DeePLCCHistory",
     "BarrierForce",
+    "ConflictCost",
 ]

@@ -43,6 +43,9 @@ def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
     rep = evaluate_and_report(cfg, out)
     print(f"report: {rep['paths']['md']}")
     print(f"        {rep['paths']['json']}")
+    if "sets" in rep:  # the intersection: one table per test set
+        print(rep["paths"]["md"].read_text())
+        return rep
     if "rings" in rep:  # the stop-and-go wave report (rings without a head)
         for L, e in rep["rings"].items():
             for label, r in e["controllers"].items():

@@ -7,9 +7,13 @@
     mt-train experiment=ring_ppo env.backend=sumo trainer.num_envs=2 trainer.collector=multi_sync trainer.collector_workers=2
     mt-train experiment=ring_lagrangian_ppo resume=outputs/runs/ring_lagrangian_ppo/<run>
     mt-train experiment=intersection_lppo_bff
+    mt-train env=intersection loss=lagrangian_ppo transforms=barrier_force
 """
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
@@ -39,12 +43,12 @@ def run_train(cfg: DictConfig) -> float:
     from mixed_traffic.validation import validate_config
 
     validate_config(cfg)
-    if cfg.env.scenario == "intersection":  # the intersection methods have their own loop
-        from mixed_traffic.intersection.train_lppo import run_experiment
+    if cfg.get("controller"):  # a classical-controller experiment (e.g. intersection_nmpc): nothing to train
+        from mixed_traffic.evaluation import evaluate_and_report
 
-        out = run_experiment(cfg, cfg.out_dir)
-        return float(out.get("eval", {}).get("overall", {}).get("success_rate", float("nan")))
-
+        rep = evaluate_and_report(cfg, Path(cfg.out_dir) / "eval")
+        print(f"{cfg.name} names controller={cfg.controller}: nothing to train; evaluated it. report: {rep['paths']['md']}")
+        return float("nan")
     from mixed_traffic.training import train
 
     result = train(cfg)
@@ -56,7 +60,12 @@ def run_train(cfg: DictConfig) -> float:
         print(f"report: {rep['paths']['md']}")
     print(f"run directory: {result['out_dir']}")
     if result["stopped_early"]:
-        print(f"stopped early at {s['frames']} frames; continue with resume={result['out_dir']}")
+        tc = cfg.trainer
+        why = (f"trainer.max_minutes={tc.max_minutes}" if tc.max_minutes is not None and
+               s["wall_seconds"] > 60 * tc.max_minutes else f"trainer.max_iterations={tc.max_iterations}")
+        print(f"\nWARNING: training STOPPED EARLY by {why} at {s['frames']} of {tc.total_frames} frames: "
+              f"no final policy yet (no final.pt, no evaluation).\n         continue it with: "
+              f"mt-train resume={result['out_dir']}", file=sys.stderr, flush=True)
     else:
         print(f"final policy: {result['out_dir'] / 'final.pt'}  ({s['frames']} frames, {s['wall_seconds']:.0f} s)")
     return float(s["final"].get("reward_per_step", float("nan")))

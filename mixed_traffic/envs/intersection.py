@@ -2,7 +2,7 @@
 
 The ego drives north on the line ``x = 0.5`` with double-integrator dynamics (state
 ``[y, v]``, action = acceleration in m/s^2, dt 0.1 s) from ``y = -1.25`` to ``y >= 1.25``
-while a human-driven agent (see :mod:`mixed_traffic.intersection.agent_model`) crosses its
+while a human-driven agent (see :mod:`mixed_traffic.envs.intersection_agents`) crosses its
 path. Every row is an independent episode that auto-resets on its own (``"_reset"`` mask).
 
 Keys (all ``[B, ...]``):
@@ -36,19 +36,61 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch import nn
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from mixed_traffic.intersection.agent_model import (
+from mixed_traffic.envs.intersection_agents import (
     BEHAVIOURS,
     TRAIN_BEHAVIOURS,
     AgentModelParams,
     AgentTrajectories,
+    _path,
     load_recorded_trajectories,
+    reactive_step,
     sample_agent_trajectories,
 )
 
 EGO_X = 0.5
+OBS_SCALE = (1.5, 1.0, 2.0, 1.0, 1.0, 1.0, 0.1, 0.1)
+OBS_SHIFT = (0.0, 0.8, 0.5, 0.3, -0.5, 0.0, 0.1, 0.1)
+
+
+def relational_features(obs: torch.Tensor) -> torch.Tensor:
+    """Ego-agent features an MLP finds hard to compute from raw coordinates (all O(1)), ``[..., 5]``.
+
+    Relative position, distance, the agent's time to reach the ego's line and the ego's time
+    to reach the agent's ``y`` (both clipped to [-5, 5] s).
+    """
+    y, v, xa, ya, vxa = obs[..., 0:1], obs[..., 1:2], obs[..., 2:3], obs[..., 3:4], obs[..., 4:5]
+    dx, dy = xa - EGO_X, ya - y
+    d = torch.sqrt(dx**2 + dy**2)
+    t_agent = (dx / (-vxa).clamp(min=0.05)).clamp(-5, 5)
+    t_ego = (dy / v.clamp(min=0.1)).clamp(-5, 5)
+    return torch.cat([dx / 2, dy / 2, d / 2, t_agent / 2, t_ego / 2], dim=-1)
+
+
+class ObservationFeatures(nn.Module):
+    """Network input for the intersection (``policy.features=intersection``): normalised observation + relations.
+
+    ``forward(observation, *extra)`` returns ``[..., 8 + 5 + sum(extra dims)]``; extra inputs
+    (e.g. a base controller's acceleration) are divided by ``extra_scale``.
+
+    >>> ObservationFeatures()(torch.zeros(3, 8), torch.zeros(3, 1)).shape
+    torch.Size([3, 14])
+    """
+
+    n_features = 8 + 5
+
+    def __init__(self, extra_scale: float = 3.2):
+        super().__init__()
+        self.register_buffer("shift", torch.tensor(OBS_SHIFT))
+        self.register_buffer("scale", torch.tensor(OBS_SCALE))
+        self.extra_scale = float(extra_scale)
+
+    def forward(self, obs: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
+        x = [((obs - self.shift) / self.scale).clamp(-10, 10), relational_features(obs)]
+        return torch.cat(x + [e / self.extra_scale for e in extra], dim=-1)
 
 
 class IntersectionEnv(EnvBase):
@@ -62,6 +104,12 @@ class IntersectionEnv(EnvBase):
         start_noise: half width of the uniform random start offset (m), 0 .. 0.15.
         agent_split, agent_behaviours, agent_bank_size, agent_style: the agent model's
             trajectory bank, resampled on every ``set_seed``.
+        hard_start_fraction, hard_start_x: share of the generated bank replaced by agents whose
+            start ``x`` is drawn from ``hard_start_x`` (close starts, which reach the crossing
+            ~1.5 s after the ego starts; an independent seed stream).
+        reactive_fraction: share of the generated bank made of reactive agents, which answer
+            the ego's motion (yield, hesitate, speed up or go;
+            :func:`~mixed_traffic.envs.intersection_agents.reactive_step`).
         agent_trajectories: an :class:`AgentTrajectories` bank or a path to a ``.npy`` of
             recorded rows ``[x, y, vx, vy, sx, sy]``; replaces the generative model.
         agent_sampling: ``"random"`` (each reset draws a bank index) or ``"sequential"``
@@ -77,7 +125,8 @@ class IntersectionEnv(EnvBase):
                  y_start: float = -1.25, y_goal: float = 1.25, y_min: float = -6.0, y_max: float = 25.0,
                  max_steps: int = 500, radius: float = 0.3328, v_min: float = -1.0, v_max: float = 3.0,
                  start_noise: float = 0.0, agent_split: str = "train", agent_behaviours=None,
-                 agent_bank_size: int = 2048, agent_style: str = "mixed",
+                 agent_bank_size: int = 2048, agent_style: str = "mixed", hard_start_fraction: float = 0.0,
+                 hard_start_x: tuple[float, float] = (2.2, 2.6), reactive_fraction: float = 0.0,
                  agent_trajectories: AgentTrajectories | str | None = None, agent_sampling: str = "random",
                  w_prog: float = 25.0, w_time: float = 0.5, w_speed: float = 90.0, v_limit: float = 1.5,
                  w_comf: float = 0.697, r_goal: float = 200.0, c_crash_reward: float = 150.0,
@@ -100,7 +149,15 @@ class IntersectionEnv(EnvBase):
             raise ValueError(f"agent_sampling={agent_sampling!r} is invalid; allowed: 'random', 'sequential'")
         if not (isinstance(agent_bank_size, int) and agent_bank_size >= 1):
             raise ValueError(f"agent_bank_size={agent_bank_size!r} is invalid; allowed: an integer >= 1")
+        for name, frac in (("hard_start_fraction", hard_start_fraction), ("reactive_fraction", reactive_fraction)):
+            if not (isinstance(frac, (int, float)) and 0.0 <= frac <= 1.0):
+                raise ValueError(f"{name}={frac!r} is invalid; allowed: a number in [0, 1]")
+        if hard_start_fraction + reactive_fraction > 1.0:
+            raise ValueError(f"hard_start_fraction + reactive_fraction = {hard_start_fraction + reactive_fraction} "
+                             "is invalid; allowed: <= 1")
         super().__init__(device=device, batch_size=torch.Size([batch_size]))
+        self.hard_start_fraction, self.hard_start_x = float(hard_start_fraction), tuple(hard_start_x)
+        self.reactive_fraction = float(reactive_fraction)
         self.dt, self.a_max, self.y_start, self.y_goal = float(dt), float(a_max), float(y_start), float(y_goal)
         self.y_min, self.y_max, self.max_steps, self.radius = float(y_min), float(y_max), max_steps, float(radius)
         self.v_min, self.v_max, self.start_noise = float(v_min), float(v_max), float(start_noise)
@@ -124,7 +181,10 @@ class IntersectionEnv(EnvBase):
         self._set_seed(seed)
         B = self.batch_size
         z = torch.zeros(*B, 1, device=self.device)
-        self._state = {"y": z.clone(), "v": z.clone(), "t": z.long(), "idx": z.long()}
+        self._state = {"y": z.clone(), "v": z.clone(), "t": z.long(), "idx": z.long(),
+                       # reactive agents: arc length, speed, hesitation timer, ego (y, v) history (newest first)
+                       "s": z.clone(), "va": z.clone(), "timer": z.clone(),
+                       "hist": torch.zeros(*B, self.HIST, 2, device=self.device)}
         self._make_specs()
 
     # ------------------------------------------------------------------ specs
@@ -153,17 +213,39 @@ class IntersectionEnv(EnvBase):
         self._rng.manual_seed(seed)
         self._seq = 0
         if not self._fixed_bank:
-            bank = sample_agent_trajectories(self.agent_bank_size, seed=abs(seed), split=self.agent_split,
-                                             behaviours=self.agent_behaviours, horizon=self.max_steps,
-                                             params=AgentModelParams(), style=self.agent_style)
-            self.bank = bank.to(self.device)
+            n_hard = int(round(self.hard_start_fraction * self.agent_bank_size))
+            n_react = int(round(self.reactive_fraction * self.agent_bank_size))
+            kw = dict(split=self.agent_split, behaviours=self.agent_behaviours, horizon=self.max_steps)
+            n_plain = self.agent_bank_size - n_hard - n_react
+            banks = [sample_agent_trajectories(n_plain, seed=abs(seed), style=self.agent_style, **kw)] if n_plain else []
+            if n_hard:
+                banks.append(sample_agent_trajectories(n_hard, seed=abs(seed) + 7919, style=self.agent_style, **kw,
+                                                       params=AgentModelParams(start_x=self.hard_start_x)))
+            if n_react:
+                banks.append(sample_agent_trajectories(n_react, seed=abs(seed) + 104_729, style="reactive", **kw))
+            self.bank = AgentTrajectories.cat(banks).to(self.device)
         return seed
 
     # ------------------------------------------------------------------ helpers
+    HIST = 9  # ego history kept for the reactive agents' reaction time (up to 0.8 s)
+
     def _agent(self, idx: torch.Tensor, t: torch.Tensor):
+        """Perceived ``[B, 6]`` and true ``[B, 4]`` agent state; reactive rows from their live arc length."""
         t = t.clamp(max=self.bank.horizon)
         i, k = idx.squeeze(-1), t.squeeze(-1)
-        return self.bank.observed[i, k], self.bank.true[i, k]
+        obs, true = self.bank.observed[i, k], self.bank.true[i, k]
+        react = self.bank.reactive[i]
+        if not react.any():
+            return obs, true
+        st, prm, route = self._state, self.bank.params[i], self.bank.behaviour[i]
+        s, va = st["s"].squeeze(-1), st["va"].squeeze(-1)
+        path = lambda arc: _path(route, arc[:, None], prm[:, 0], prm[:, 2], torch.zeros_like(s),  # noqa: E731
+                                 torch.ones_like(s))[:, 0]
+        pos = path(s)
+        live = torch.cat([pos, (pos - path(s - va * self.dt)) / self.dt], dim=-1)
+        err = obs[:, :4] - true  # the reference trajectory's perception error
+        m = react[:, None]
+        return (torch.where(m, torch.cat([live + err, obs[:, 4:6]], -1), obs), torch.where(m, live, true))
 
     def _obs_td(self, y, v, t, idx, accel, collision, success, oob) -> TensorDict:
         obs_a, true_a = self._agent(idx, t)
@@ -207,6 +289,13 @@ class IntersectionEnv(EnvBase):
             st["v"][m] = 0.0
             st["t"][m] = 0
             st["idx"][m] = new_idx
+            for k in ("s", "va", "timer", "hist"):
+                st[k] = st[k].clone()
+            st["s"][m] = 0.0
+            st["va"][m] = self.bank.params[new_idx.squeeze(-1), -1:]  # v0 (reactive agents)
+            st["timer"][m] = 0.0
+            st["hist"][m] = torch.tensor([0.0, 0.0], device=self.device)
+            st["hist"][m, :, 0] = st["y"][m]
         f = torch.zeros(*B, 1, dtype=torch.bool, device=self.device)
         out = self._obs_td(st["y"], st["v"], st["t"], st["idx"], torch.zeros_like(st["y"]), f, f.clone(), f.clone())
         out.set("done", f.clone())
@@ -222,6 +311,16 @@ class IntersectionEnv(EnvBase):
         y_new = y + 0.5 * (v + v_new) * self.dt
         a_exec = (v_new - v) / self.dt
         t_new = t + 1
+        hist = torch.cat([torch.cat([y_new, v_new], -1)[:, None], st["hist"][:, :-1]], dim=1)
+        i = idx.squeeze(-1)
+        if self.bank.reactive[i].any():  # reactive agents answer the ego as it was their reaction time ago
+            delay = self.bank.params[i, 4].long().clamp(0, self.HIST - 1)
+            seen = hist[torch.arange(hist.shape[0]), delay]
+            s_a, v_a, timer = reactive_step(self.bank.behaviour[i], self.bank.params[i], st["s"].squeeze(-1),
+                                            st["va"].squeeze(-1), st["timer"].squeeze(-1), seen[:, 0], seen[:, 1],
+                                            dt=self.dt)
+            st = dict(st, s=s_a[:, None], va=v_a[:, None], timer=timer[:, None])
+        self._state = dict(st, hist=hist)
         obs_a, true_a = self._agent(idx, t_new)
         d_true = torch.sqrt((EGO_X - true_a[:, 0:1]) ** 2 + (y_new - true_a[:, 1:2]) ** 2)
         collision = d_true < 2 * self.radius
@@ -233,7 +332,7 @@ class IntersectionEnv(EnvBase):
                   - self.w_speed * torch.clamp(v_new - self.v_limit, min=0.0) ** 2 - self.w_comf * a_exec**2
                   + self.r_goal * success.float() - self.c_crash_reward * collision.float())
         cost = self.safety_cost(y_new, obs_a) + self.c_crash * collision.float()
-        self._state = {"y": y_new, "v": v_new, "t": t_new, "idx": idx}
+        self._state.update(y=y_new, v=v_new, t=t_new, idx=idx)
         out = self._obs_td(y_new, v_new, t_new, idx, a_exec, collision, success, oob)
         out.set("reward", reward)
         out.set("cost", cost)
@@ -243,4 +342,4 @@ class IntersectionEnv(EnvBase):
         return out
 
 
-__all__ = ["IntersectionEnv", "EGO_X"]
+__all__ = ["IntersectionEnv", "EGO_X", "ObservationFeatures", "relational_features"]

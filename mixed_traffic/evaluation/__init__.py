@@ -27,6 +27,10 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     controller = controller if controller is not None else cfg.get("controller")
     if (checkpoint is None) == (controller is None):
         raise ValueError("evaluate: give exactly one of checkpoint=PATH or controller=idm|ovm")
+    if (checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg).env.scenario == "intersection":
+        from mixed_traffic.intersection.evaluate import evaluate_run
+
+        return evaluate_run(cfg, out_dir, checkpoint=checkpoint, controller=controller)
     if is_wave_ring(checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg):
         return evaluate_waves_and_report(cfg, out_dir, checkpoint=checkpoint, controller=controller, title=title)
     run_dir = None

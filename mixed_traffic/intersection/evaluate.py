@@ -16,6 +16,7 @@ every episode has ended once.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,13 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from mixed_traffic.envs.intersection import IntersectionEnv
-from mixed_traffic.intersection.agent_model import BEHAVIOUR_NAMES, BEHAVIOURS, AgentTrajectories, make_test_set
+from mixed_traffic.envs.intersection_agents import (
+    BEHAVIOUR_NAMES,
+    BEHAVIOURS,
+    TRAIN_BEHAVIOURS,
+    AgentTrajectories,
+    make_test_set,
+)
 
 METRICS = ("episodes", "success_rate", "collision_rate", "timeout_rate", "out_of_bounds_rate",
            "crossing_time_s", "return", "cost")
@@ -202,4 +209,73 @@ def write_gifs(result: EvalResult, out_dir: str | Path, prefix: str = "episode")
     return paths
 
 
-__all__ = ["EvalResult", "evaluate_policy", "summarise", "format_table", "write_gifs", "make_eval_env", "METRICS"]
+def outcomes(res: EvalResult) -> dict:
+    """Per-episode outcome codes: ``S`` success, ``C`` collision, ``T`` timeout, ``O`` out of bounds."""
+    codes = np.where(res.success, "S", np.where(res.collision, "C", np.where(res.timeout, "T", "O")))
+    return {"codes": "".join(codes.tolist()), "steps": res.steps.astype(int).tolist()}
+
+
+def test_sets(eval_cfg) -> dict[str, AgentTrajectories]:
+    """The test sets of an evaluation config (``n = eval.episodes``, seeds from ``eval.seed``; test split).
+
+    * ``standard``: ``n`` episodes of each of straight, left, right and the held-out zig-zag (4n);
+    * ``reactive``: agents that answer the ego's motion, ``ceil(2.5 n / 3)`` per training route (>= 2.5n);
+    * ``stop_in_zone``: agents that stop with their centre just past the ego's line for 2-8 s before
+      going on, ``ceil(2.5 n / 2)`` per crossing route (straight, left); never used in training.
+    """
+    n, seed = int(eval_cfg.episodes), int(eval_cfg.seed)
+    return {"standard": make_test_set(n, seed=seed),
+            "reactive": make_test_set(math.ceil(2.5 * n / 3), seed=seed + 1, behaviours=TRAIN_BEHAVIOURS,
+                                      style="reactive"),
+            "stop_in_zone": make_test_set(math.ceil(2.5 * n / 2), seed=seed + 2, behaviours=("straight", "left"),
+                                          style="stop_in_zone")}
+
+
+def load_policy(checkpoint):
+    """``(policy, make_transform, run_cfg)`` of a trained run: the actor and a factory of the
+    run's env-side transforms without the training-only ones (``None`` when it has none)."""
+    from torchrl.envs import Compose
+
+    from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
+    from mixed_traffic.training.builders import TRAINING_ONLY, TRANSFORMS, make_transformed_env
+
+    run_cfg, state = checkpoint_config(checkpoint)
+    env = make_transformed_env(run_cfg, num_envs=1, seed=0, without=TRAINING_ONLY)
+    policy = policy_factory_from_state(run_cfg, state)(env)
+    chain = [n for n in run_cfg.transforms.chain if n not in TRAINING_ONLY]
+    make = (lambda: Compose(*[TRANSFORMS[n](run_cfg.transforms, None) for n in chain])) if chain else (lambda: None)
+    return policy, make, run_cfg
+
+
+def evaluate_run(cfg, out_dir: str | Path, *, checkpoint=None, controller: str | None = None) -> dict:
+    """``mt-eval`` / ``mt-train`` evaluation of an intersection policy: every test set, ``eval.json`` + ``report.md``.
+
+    ``checkpoint`` (a run's ``final.pt`` or directory) or ``controller="nmpc"``.
+    """
+    from mixed_traffic.intersection.nmpc import make_nmpc_policy
+
+    if controller is not None and controller != "nmpc":
+        raise ValueError(f"controller: {controller!r} is invalid for the intersection; allowed: 'nmpc'")
+    if checkpoint is not None:
+        policy, make_transform, _ = load_policy(checkpoint)
+        label = str(checkpoint)
+    else:
+        policy, make_transform, label = make_nmpc_policy(), (lambda: None), "nmpc"
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = {"name": str(cfg.name), "policy": label, "sets": {}}
+    md = [f"# {cfg.name}: {label}", ""]
+    for name, ts in test_sets(cfg.eval).items():
+        res = evaluate_policy(policy, test_set=ts, transform=make_transform())
+        report["sets"][name] = {"table": res.table, "outcomes": outcomes(res), **res.extra}
+        md += [format_table(res.table, title=f"{name} ({len(ts)} episodes)"), ""]
+    report["eval"] = report["sets"]["standard"]["table"]
+    report["outcomes"] = report["sets"]["standard"]["outcomes"]
+    paths = {"json": out_dir / "eval.json", "md": out_dir / "report.md"}
+    paths["json"].write_text(json.dumps(report, indent=2))
+    paths["md"].write_text("\n".join(md))
+    report["paths"] = paths
+    return report
+
+
+__all__ = ["EvalResult", "evaluate_run", "load_policy", "test_sets", "outcomes", "evaluate_policy", "summarise", "format_table", "write_gifs", "make_eval_env", "METRICS"]

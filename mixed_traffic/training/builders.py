@@ -1,7 +1,7 @@
 """Build the pieces of a run from its config: env + transform chain, networks, losses.
 
 Everything here is plain TorchRL: ``TransformedEnv(make_env(...), Compose(...))``,
-``ProbabilisticActor`` + ``ValueOperator``, ``ClipPPOLoss``, ``QValueActor`` + ``DQNLoss``.
+``ProbabilisticActor`` + value ``TensorDictModule``, ``ClipPPOLoss``, ``QValueActor`` + ``DQNLoss``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import OneHot
 from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
-from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal
 
 from mixed_traffic.envs import make_env
 
@@ -88,6 +88,25 @@ def _state_discretizer(tcfg, env):
     return StateDiscretizer(n_bins=tcfg.discretizer.state_bins)
 
 
+def _barrier_force(tcfg, env):
+    from transforms import BarrierForce
+
+    return BarrierForce(rho=tcfg.barrier_force.rho, K=tcfg.barrier_force.K)
+
+
+def _residual_nmpc(tcfg, env):
+    from mixed_traffic.intersection.residual import ResidualNMPC
+
+    return ResidualNMPC(weight=tcfg.residual_nmpc.weight)
+
+
+def _conflict_cost(tcfg, env):
+    from transforms import ConflictCost
+
+    c = tcfg.conflict_cost
+    return ConflictCost(anticipation=c.anticipation, horizon_s=c.horizon_s, out_of_bounds=c.out_of_bounds)
+
+
 # name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
 TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
@@ -98,7 +117,12 @@ TRANSFORMS: dict[str, Callable] = {
     "residual_nnmpc": _residual_nnmpc,
     "jerk_penalty": _jerk_penalty,
     "state_discretizer": _state_discretizer,
+    "barrier_force": _barrier_force,
+    "residual_nmpc": _residual_nmpc,
+    "conflict_cost": _conflict_cost,
 }
+#: transforms that shape training only; the evaluation runs the env without them
+TRAINING_ONLY = ("conflict_cost", "jerk_penalty")
 
 
 def check_chain(chain) -> None:
@@ -197,34 +221,72 @@ class GaussianHead(nn.Module):
         return loc, scale
 
 
-def make_actor_critic(cfg: DictConfig, env: EnvBase) -> tuple[ProbabilisticActor, ValueOperator]:
-    """PPO actor (TanhNormal to the action bounds) and critic sharing one trunk module."""
+class NetworkInput(nn.Module):
+    """Concatenates the network's inputs, through ``features`` when set, then runs ``body``."""
+
+    def __init__(self, body: nn.Module, features: nn.Module | None = None):
+        super().__init__()
+        self.body, self.features = body, features
+
+    def forward(self, *xs: torch.Tensor) -> torch.Tensor:
+        return self.body(self.features(*xs) if self.features is not None else torch.cat(xs, dim=-1))
+
+
+def _net(body: nn.Module, feats: nn.Module | None, p) -> nn.Module:
+    """``body`` alone for a plain observation input (the checkpoints' layout), else a :class:`NetworkInput`."""
+    return body if feats is None and len(_in_keys(p)) == 1 else NetworkInput(body, feats)
+
+
+def _in_keys(p) -> list:
+    return ["observation"] + [tuple(k.split(".")) if "." in k else k for k in p.get("extra_in_keys", [])]
+
+
+def _input(p, env: EnvBase) -> tuple[nn.Module | None, int]:
+    """The policy's feature module (``policy.features``) and its output width."""
+    keys = _in_keys(p)
+    dims = [env.observation_spec[k].shape[-1] for k in keys]
+    if p.get("features", "none") == "intersection":
+        from mixed_traffic.envs.intersection import ObservationFeatures
+
+        return ObservationFeatures(), ObservationFeatures.n_features + sum(dims[1:])
+    return None, sum(dims)
+
+
+def make_value(cfg: DictConfig, env: EnvBase, out_key: str = "state_value", trunk: Trunk | None = None):
+    """A critic with its own trunk (``policy.hidden``; built here unless given) writing ``out_key``."""
+    p = cfg.policy
+    feats, in_dim = _input(p, env)
+    trunk = trunk if trunk is not None else Trunk(in_dim, list(p.hidden), p.activation)
+    hidden = "hidden_v" if out_key == "state_value" else f"hidden_{out_key}"
+    lin = _ortho(nn.Linear(trunk.out_dim, 1), 1.0)
+    nn.init.constant_(lin.bias, float(p.get("value_bias_init", 0.0)))
+    return TensorDictSequential(TensorDictModule(_net(trunk, feats, p), in_keys=_in_keys(p), out_keys=[hidden]),
+                                TensorDictModule(lin, in_keys=[hidden], out_keys=[out_key]))
+
+
+def make_actor_critic(cfg: DictConfig, env: EnvBase) -> tuple[ProbabilisticActor, TensorDictModule]:
+    """PPO actor (TanhNormal to the action bounds) and critic, sharing one trunk when ``policy.shared_trunk``."""
     p = cfg.policy
     if p.kind != "actor_critic":
         raise ValueError(f"policy.kind={p.kind!r} is invalid for loss {cfg.loss.name!r}; allowed: 'actor_critic'")
-    obs_dim = env.observation_spec["observation"].shape[-1]
     spec = env.action_spec_unbatched
-    act_dim = spec.shape[-1]
-    trunk = Trunk(obs_dim, list(p.hidden), p.activation)
-    trunk_mod = TensorDictModule(trunk, in_keys=["observation"], out_keys=["hidden"])
-    if p.shared_trunk:
-        critic_trunk = trunk_mod
-    else:
-        critic_trunk = TensorDictModule(Trunk(obs_dim, list(p.hidden), p.activation), in_keys=["observation"],
-                                        out_keys=["hidden_v"])
-    head = TensorDictModule(GaussianHead(trunk.out_dim, act_dim, p.log_std_init, p.log_std_min, p.log_std_max),
-                            in_keys=["hidden"], out_keys=["loc", "scale"])
+    feats, in_dim = _input(p, env)
+    trunk = Trunk(in_dim, list(p.hidden), p.activation)
+    trunk_mod = TensorDictModule(_net(trunk, feats, p), in_keys=_in_keys(p), out_keys=["hidden"])
+    critic_trunk = None if p.shared_trunk else Trunk(in_dim, list(p.hidden), p.activation)
+    head = TensorDictModule(GaussianHead(trunk.out_dim, spec.shape[-1], p.log_std_init, p.log_std_min,
+                                         p.log_std_max), in_keys=["hidden"], out_keys=["loc", "scale"])
     actor = ProbabilisticActor(
         TensorDictSequential(trunk_mod, head), in_keys=["loc", "scale"], spec=spec,
         distribution_class=TanhNormal,
         distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
         return_log_prob=True,
     )
-    v_in = "hidden" if p.shared_trunk else "hidden_v"
+    if critic_trunk is not None:
+        return actor, make_value(cfg, env, trunk=critic_trunk)
     v_lin = _ortho(nn.Linear(trunk.out_dim, 1), 1.0)
     nn.init.constant_(v_lin.bias, float(p.get("value_bias_init", 0.0)))
-    value_head = TensorDictModule(v_lin, in_keys=[v_in], out_keys=["state_value"])
-    critic = TensorDictSequential(critic_trunk, value_head)
+    critic = TensorDictSequential(trunk_mod, TensorDictModule(v_lin, in_keys=["hidden"], out_keys=["state_value"]))
     return actor, critic
 
 

@@ -3,12 +3,14 @@
 One iteration, CleanRL style::
 
     batch = collector.next()                        # [num_envs, rollout_len]
-    penalty(batch)                                  # lagrangian_ppo: r <- r - lambda * c
-    gae(batch)                                      # advantage, value_target (bootstraps on truncation)
+    penalty(batch)                                  # lagrangian_ppo, 1 critic: r <- r - lambda * c
+    loss_module.update_lambda(batch)                # lagrangian_ppo, 2 critics: dual ascent on the batch cost
+    gae(batch) for each critic                      # advantage(s), value target(s) (bootstrap on truncation)
     for epoch, minibatch in shuffled(batch):        # `epochs` passes
-        loss = sum(loss_module(minibatch) terms)    # clipped surrogate + critic (+ value clip) - entropy
+        loss = sum(loss_module(minibatch) terms)    # clipped surrogate + critic(s) - entropy
+        loss += aux(minibatch)                      # optional BC on demonstrations / residual size
         loss.backward(); clip_grad_norm_; optim.step()
-    penalty.update(batch)                           # dual ascent on lambda from the mean cost
+    penalty.update(batch)                           # 1 critic: dual ascent on lambda from the mean cost
 """
 
 from __future__ import annotations
@@ -22,18 +24,26 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from mixed_traffic.training import checkpoint as ck
-from mixed_traffic.training.builders import collector_rows, make_actor_critic, make_collector, make_transformed_env
+from mixed_traffic.training.builders import (
+    collector_rows,
+    make_actor_critic,
+    make_collector,
+    make_transformed_env,
+    make_value,
+)
 from mixed_traffic.training.metrics import batch_metrics
 from mixed_traffic.training.run import Run
 
 
 def build_ppo(cfg: DictConfig, env):
-    """Actor, critic, loss, GAE and (Lagrangian PPO) the reward penalty holding lambda.
+    """Actor, critic, loss, GAE estimators and (single-critic Lagrangian PPO) the reward penalty.
 
-    ``lagrangian_ppo`` is the seed's scheme: the batch reward is penalised in the main
-    process by :class:`transforms.LagrangianPenalty` (``r - lambda c``) before GAE, and the
-    loss is :class:`losses.LagrangianPPOLoss` in its single-critic ("ring") form sharing
-    that multiplier (plain clipped PPO, reporting lambda).
+    * ``ppo``: ``ClipPPOLoss``, one GAE.
+    * ``lagrangian_ppo`` with ``loss.critics=1`` (the ring seed's scheme): the batch reward is
+      penalised in the main process by :class:`transforms.LagrangianPenalty` (``r - lambda c``)
+      before GAE; :class:`losses.LagrangianPPOLoss` in its single-critic form shares the multiplier.
+    * ``lagrangian_ppo`` with ``loss.critics=2``: a cost critic and a second GAE on the cost;
+      :class:`losses.LagrangianPPOLoss` combines ``(A_R - lambda A_C) / (1 + lambda)`` and holds lambda.
     """
     lc = cfg.loss
     if lc.name not in ("ppo", "lagrangian_ppo"):
@@ -42,19 +52,75 @@ def build_ppo(cfg: DictConfig, env):
     kw = dict(clip_epsilon=lc.clip_epsilon, entropy_coeff=lc.entropy_coeff, critic_coeff=lc.critic_coeff,
               loss_critic_type=lc.loss_critic_type, normalize_advantage=lc.normalize_advantage,
               clip_value=lc.clip_value)
+    lam = dict(lambda_init=lc.lambda_init, lambda_lr=lc.lambda_lr, lambda_max=lc.lambda_max,
+               cost_limit=lc.violation_tolerance, lambda_method=lc.lambda_method)
     penalty = None
-    if lc.name == "lagrangian_ppo":
+    gaes = [GAE(gamma=lc.gamma, lmbda=lc.gae_lambda, value_network=critic, average_gae=False)]
+    if lc.name == "lagrangian_ppo" and lc.get("critics", 1) == 2:
+        from losses import LagrangianPPOLoss
+
+        cost_critic = make_value(cfg, env, "cost_value")
+        loss = LagrangianPPOLoss(actor, critic, cost_critic, **lam, **kw)
+        gaes.append(GAE(gamma=lc.gamma, lmbda=lc.gae_lambda, value_network=cost_critic, average_gae=False))
+        gaes[-1].set_keys(reward="cost", value="cost_value", advantage="cost_advantage",
+                          value_target="cost_value_target")
+    elif lc.name == "lagrangian_ppo":
         from losses import LagrangianPPOLoss
         from transforms import LagrangianPenalty
 
-        penalty = LagrangianPenalty(lambda_init=lc.lambda_init, lambda_lr=lc.lambda_lr, lambda_max=lc.lambda_max,
-                                    cost_limit=lc.violation_tolerance, method=lc.lambda_method,
-                                    kp=lc.lambda_kp, kd=lc.lambda_kd)
+        lam["cost_limit"], lam["method"] = lam.pop("cost_limit"), lam.pop("lambda_method")
+        penalty = LagrangianPenalty(**lam, kp=lc.lambda_kp, kd=lc.lambda_kd)
         loss = LagrangianPPOLoss(actor, critic, None, multiplier=penalty.multiplier, **kw)
     else:
         loss = ClipPPOLoss(actor, critic, **kw)
-    gae = GAE(gamma=lc.gamma, lmbda=lc.gae_lambda, value_network=critic, average_gae=False)
-    return actor, critic, loss, gae, penalty
+    return actor, critic, loss, gaes, penalty
+
+
+class AuxiliaryLosses:
+    """The optional terms added to the PPO loss of every minibatch (``loss.bc``, ``loss.residual_coeff``).
+
+    * behaviour cloning: :class:`losses.BCLoss` on a random batch of the cached demonstrations,
+      weight going linearly from ``bc.coeff`` to ``bc.final_coeff`` over the run (after
+      ``bc.pretrain_steps`` steps of BC alone);
+    * residual size: the same :class:`losses.BCLoss` towards a zero action (the base
+      controller's), i.e. ``residual_coeff * mean(a_det^2)`` as in :class:`losses.ResidualMPCLoss`.
+    """
+
+    def __init__(self, cfg: DictConfig, actor, pretrain: bool):
+        from losses import BCLoss
+
+        lc, self.minibatch = cfg.loss, int(cfg.trainer.minibatch_size)
+        self.bc = self.demo = self.residual = None
+        b = lc.get("bc")
+        if b is not None and b.coeff > 0:
+            from mixed_traffic.intersection.demos import load_or_make
+
+            self.demo = load_or_make(b.demos, expert=b.expert, episodes=b.episodes, seed=int(cfg.seed))
+            self.c0, self.c1 = float(b.coeff), float(b.coeff if b.final_coeff is None else b.final_coeff)
+            self.bc = BCLoss(actor)
+            if pretrain and b.pretrain_steps:
+                opt = torch.optim.Adam(actor.parameters(), lr=b.pretrain_lr)
+                for _ in range(int(b.pretrain_steps)):
+                    opt.zero_grad()
+                    self.bc(self.sample(512))["loss_bc"].backward()
+                    opt.step()
+        if lc.get("residual_coeff", 0.0) > 0:
+            self.residual = BCLoss(actor, coeff=lc.residual_coeff)
+
+    def sample(self, n: int):
+        return self.demo[torch.randint(self.demo.shape[0], (min(n, self.demo.shape[0]),))]
+
+    def bc_coeff(self, frac: float) -> float:
+        return 0.0 if self.bc is None else self.c0 + (self.c1 - self.c0) * frac
+
+    def __call__(self, mb, frac: float) -> dict:
+        out = {}
+        if self.bc is not None:
+            out["loss_bc"] = self.bc_coeff(frac) * self.bc(self.sample(self.minibatch))["loss_bc"]
+        if self.residual is not None:
+            out["loss_residual"] = self.residual(mb.select(*self.residual.actor.in_keys, strict=False).set(
+                "expert_action", torch.zeros_like(mb["action"])))["loss_bc"]
+        return out
 
 
 def restore_collection(cfg: DictConfig, env, collector, resume: dict) -> None:
@@ -88,12 +154,15 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
     single = tc.get("collector", "single") == "single"
     # past one process the workers build their own envs; this one gives the specs
     env = make_transformed_env(cfg, num_envs=collector_rows(cfg), seed=cfg.seed)
-    actor, critic, loss_module, gae, penalty = build_ppo(cfg, env)
+    actor, critic, loss_module, gaes, penalty = build_ppo(cfg, env)
     ws = cfg.policy.get("warm_start")
     if ws is not None and ws.nnmpc and resume is None:  # Warm Start RL: the actor starts as the NNMPC
         from mixed_traffic.controllers.deeplcc.rlmpc import warm_start_actor
 
         warm_start_actor(actor, env, ws.nnmpc, frames=ws.frames, epochs=ws.epochs, lr=ws.lr, seed=cfg.seed)
+    aux = AuxiliaryLosses(cfg, actor, pretrain=resume is None)  # before the run's clock starts
+    two_critics = hasattr(loss_module, "update_lambda") and loss_module.cost_critic_network is not None
+    scale = float(cfg.loss.get("reward_scale", 1.0))
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
     if not single:
@@ -135,8 +204,16 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
             if penalty is not None:
                 m["lambda"] = penalty.lam
                 penalty(batch)  # r <- r - lambda * c (the multiplier of this batch)
+            if two_critics:
+                m["lambda"] = float(loss_module.lagrange_multiplier)
+                m["lambda_next"] = loss_module.update_lambda(batch)  # on the batch's own mean cost
+            if scale != 1.0:
+                for k in ("reward", "cost"):
+                    if ("next", k) in batch.keys(True):
+                        batch.set(("next", k), batch.get(("next", k)) * scale)
             with torch.no_grad():
-                gae(batch)
+                for gae in gaes:
+                    gae(batch)
             flat = batch.reshape(-1)
             n = flat.numel()
             mb = min(tc.minibatch_size, n)
@@ -145,15 +222,20 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
             for _ in range(tc.epochs):
                 perm = torch.randperm(n)
                 for s in range(0, n - mb + 1, mb):
-                    out = loss_module(flat[perm[s:s + mb]])
+                    batch_mb = flat[perm[s:s + mb]]
+                    out = loss_module(batch_mb)
+                    out.update(aux(batch_mb, it / n_iters))
                     loss = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                    for k in ("loss_cost_critic", "loss_bc", "loss_residual"):
+                        if k in out.keys():
+                            loss = loss + out[k]
                     optim.zero_grad(set_to_none=True)
                     loss.backward()
                     gn = torch.nn.utils.clip_grad_norm_(loss_module.parameters(), tc.max_grad_norm)
                     optim.step()
                     n_updates += 1
-                    for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction",
-                              "kl_approx"):
+                    for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_cost_critic", "loss_bc",
+                              "loss_residual", "entropy", "clip_fraction", "kl_approx"):
                         if k in out.keys():
                             sums[k] = sums.get(k, 0.0) + float(out[k].detach().mean())
                     sums["grad_norm"] = sums.get("grad_norm", 0.0) + float(gn)

@@ -23,7 +23,7 @@ Trajectories are open loop and pre-generated, so a fixed, seeded test set is ide
 every controller. Splits: ``"train"`` and ``"test"`` draw from the same distributions with
 independent seed streams; ``zigzag`` is excluded from training by default.
 
->>> from mixed_traffic.intersection.agent_model import sample_agent_trajectories
+>>> from mixed_traffic.envs.intersection_agents import sample_agent_trajectories
 >>> bank = sample_agent_trajectories(8, seed=0, split="test", horizon=50)
 >>> bank.observed.shape, bank.true.shape
 (torch.Size([8, 51, 6]), torch.Size([8, 51, 4]))
@@ -49,6 +49,10 @@ DT = 0.1
 LANE_Y = 0.5  # westbound lane of the agent
 BOX = 1.5  # half width of the intersection box
 STOP_LINE_X = 1.9  # agent's centre stops here when yielding (box edge + radius + margin)
+EGO_LINE_X = 0.5  # the ego drives north on x = 0.5
+STYLES = ("mixed", "plain", "stop_in_zone", "reactive")
+#: columns of ``AgentTrajectories.params`` (reactive agents)
+REACTIVE_PARAMS = ("x0", "v_nom", "offset", "assertiveness", "delay_steps", "go_speed", "patience", "speed_up", "v0")
 
 
 @dataclass
@@ -79,10 +83,20 @@ class AgentModelParams:
     dropout_len: tuple[float, float] = (0.3, 1.5)  # s
     sigma_range: tuple[float, float] = (0.02, 0.35)  # clamp of the reported sigma (m)
     noise_corr: float = 0.85  # AR(1) correlation of the position error per step
+    # style="stop_in_zone": the agent stops with its centre just past the ego's line for stop_wait s
+    stop_x: tuple[float, float] = (0.15, 0.45)
+    stop_wait: tuple[float, float] = (2.0, 8.0)
+    # style="reactive" (reactive_step): how the agent answers the ego's motion
+    assertiveness: tuple[float, float] = (0.0, 1.0)  # < 0.4 yields, < 0.7 hesitates, else speeds up
+    reaction_time: tuple[float, float] = (0.2, 0.8)  # s: it sees the ego this late
+    go_speed: tuple[float, float] = (0.3, 0.8)  # m/s: the ego speed it reads as "the ego is going"
+    patience: tuple[float, float] = (1.0, 4.0)  # s a hesitating agent crawls before it goes anyway
+    speed_up: tuple[float, float] = (1.3, 1.7)  # factor on the nominal speed when it tries to go first
 
     def validate(self) -> None:
         for name in ("start_x", "speed", "speed_variation", "speed_period", "hesitate_duration", "yield_wait",
-                     "zigzag_amplitude", "zigzag_wavelength", "meas_std", "dropout_len", "sigma_range"):
+                     "zigzag_amplitude", "zigzag_wavelength", "meas_std", "dropout_len", "sigma_range", "stop_x",
+                     "stop_wait", "assertiveness", "reaction_time", "go_speed", "patience", "speed_up"):
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
                 raise ValueError(f"{name}={(lo, hi)!r} is invalid; allowed: 0 <= low <= high, finite")
@@ -106,6 +120,9 @@ class AgentTrajectories:
         observed: ``[N, T+1, 6]`` perceived ``x, y, vx, vy, sigma_x, sigma_y`` (the policy's view).
         behaviour: ``[N]`` int64 index into :data:`BEHAVIOUR_NAMES`.
         hesitate, yields: ``[N]`` bool style flags (False for recorded data).
+        reactive: ``[N]`` bool: the agent reacts to the ego (:func:`reactive_step`); its ``true``
+            is then only the open-loop reference and ``observed - true`` its perception error.
+        params: ``[N, len(REACTIVE_PARAMS)]`` the reactive agent's parameters (zeros otherwise).
     """
 
     true: Tensor
@@ -113,6 +130,18 @@ class AgentTrajectories:
     behaviour: Tensor
     hesitate: Tensor
     yields: Tensor
+    reactive: Tensor | None = None
+    params: Tensor | None = None
+
+    def __post_init__(self):
+        n = self.true.shape[0]
+        if self.reactive is None:
+            self.reactive = torch.zeros(n, dtype=torch.bool, device=self.true.device)
+        if self.params is None:
+            self.params = torch.zeros(n, len(REACTIVE_PARAMS), device=self.true.device)
+
+    def _fields(self):
+        return (self.true, self.observed, self.behaviour, self.hesitate, self.yields, self.reactive, self.params)
 
     def __len__(self) -> int:
         return self.true.shape[0]
@@ -122,20 +151,17 @@ class AgentTrajectories:
         return self.true.shape[1] - 1
 
     def subset(self, idx) -> AgentTrajectories:
-        return AgentTrajectories(self.true[idx], self.observed[idx], self.behaviour[idx], self.hesitate[idx],
-                                 self.yields[idx])
+        return AgentTrajectories(*(t[idx] for t in self._fields()))
 
     def to(self, device) -> AgentTrajectories:
-        return AgentTrajectories(*(t.to(device) for t in (self.true, self.observed, self.behaviour, self.hesitate,
-                                                          self.yields)))
+        return AgentTrajectories(*(t.to(device) for t in self._fields()))
 
     @staticmethod
     def cat(banks: list[AgentTrajectories]) -> AgentTrajectories:
         h = min(b.horizon for b in banks)
         return AgentTrajectories(
             torch.cat([b.true[:, : h + 1] for b in banks]), torch.cat([b.observed[:, : h + 1] for b in banks]),
-            torch.cat([b.behaviour for b in banks]), torch.cat([b.hesitate for b in banks]),
-            torch.cat([b.yields for b in banks]))
+            *(torch.cat([b._fields()[i] for b in banks]) for i in range(2, 7)))
 
 
 def split_seed(seed: int, split: str) -> int:
@@ -182,6 +208,24 @@ def _path(route: Tensor, s: Tensor, x0: Tensor, offset: Tensor, zz_amp: Tensor, 
     return torch.stack([x, y], dim=-1)
 
 
+def arc_to_x(route: Tensor, x: Tensor, x0: Tensor, offset: Tensor) -> Tensor:
+    """Arc length at which a westbound (straight / zig-zag) or left-turning agent's centre reaches ``x``."""
+    lead = x0 - BOX
+    r_l = 2.0 - offset
+    s_left = lead + r_l * torch.asin(((BOX - x) / r_l).clamp(-1.0, 1.0))
+    return torch.where(route == 1, s_left, x0 - x)
+
+
+def conflict_point(route: Tensor, x0: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
+    """``(arc length, ego y)`` where the agent's path meets the ego's line (right turners: the merge)."""
+    lead = x0 - BOX
+    r_l, r_r = 2.0 - offset, 1.0 + offset
+    th = torch.asin((BOX - EGO_LINE_X) / r_l)
+    s_c = torch.where(route == 1, lead + r_l * th, torch.where(route == 2, lead + r_r * math.pi / 2, x0 - EGO_LINE_X))
+    y_c = torch.where(route == 1, -BOX + r_l * torch.cos(th), torch.where(route == 2, BOX + 0 * x0, LANE_Y + offset))
+    return s_c, y_c
+
+
 def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behaviours=None, horizon: int = 500,
                               params: AgentModelParams | None = None, style: str = "mixed") -> AgentTrajectories:
     """Sample ``n`` agent trajectories, behaviours spread evenly over ``behaviours``.
@@ -193,7 +237,11 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
         behaviours: names from :data:`BEHAVIOURS`; default: ``TRAIN_BEHAVIOURS`` for train,
             all four for test.
         horizon: number of 0.1 s steps (the trajectory has ``horizon + 1`` samples).
-        style: ``"mixed"`` (hesitation/yielding at their probabilities), ``"plain"`` (neither).
+        style: ``"mixed"`` (hesitation/yielding at their probabilities), ``"plain"`` (neither),
+            ``"stop_in_zone"`` (every agent stops with its centre just past the ego's line for
+            ``stop_wait`` s; straight and left routes only) or ``"reactive"`` (the agent answers
+            the ego's motion in the env, :func:`reactive_step`; the trajectory is its open-loop
+            reference and carries its perception error).
 
     >>> b = sample_agent_trajectories(6, seed=1, behaviours=["left", "right"], horizon=10)
     >>> b.behaviour.tolist()
@@ -205,12 +253,14 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
         raise ValueError(f"n={n!r} is invalid; allowed: an integer >= 1")
     if not isinstance(horizon, int) or horizon < 1:
         raise ValueError(f"horizon={horizon!r} is invalid; allowed: an integer >= 1")
-    if style not in ("mixed", "plain"):
-        raise ValueError(f"style={style!r} is invalid; allowed: 'mixed', 'plain'")
+    if style not in STYLES:
+        raise ValueError(f"style={style!r} is invalid; allowed: {list(STYLES)}")
     if behaviours is None:
         behaviours = TRAIN_BEHAVIOURS if split == "train" else BEHAVIOURS
     behaviours = list(behaviours)
     bad = [b for b in behaviours if b not in BEHAVIOURS]
+    if style == "stop_in_zone":
+        bad += [b for b in behaviours if b not in ("straight", "left")]
     if bad or not behaviours:
         raise ValueError(f"behaviours={behaviours!r} is invalid; allowed: a non-empty subset of {list(BEHAVIOURS)}")
     gen = torch.Generator().manual_seed(split_seed(seed, split))
@@ -234,9 +284,21 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
     zz_amp = _uniform(gen, n, p.zigzag_amplitude)
     zz_len = _uniform(gen, n, p.zigzag_wavelength)
     v0 = v_nom * _uniform(gen, n, (0.7, 1.0))
+    if style == "stop_in_zone":  # every agent stops on the ego's line (its centre just past it), then goes on
+        yld = torch.ones(n, dtype=torch.bool)
+        hes = torch.zeros(n, dtype=torch.bool)
+        stop_at = arc_to_x(route, _uniform(gen, n, p.stop_x), x0, offset)
+        wait = _uniform(gen, n, p.stop_wait)
+    reactive = style == "reactive"
+    if reactive:  # the env simulates the longitudinal motion; the reference below is plain
+        hes = torch.zeros(n, dtype=torch.bool)
+        yld = torch.zeros(n, dtype=torch.bool)
+        react = torch.stack([x0, v_nom, offset, _uniform(gen, n, p.assertiveness),
+                             torch.round(_uniform(gen, n, p.reaction_time) / DT), _uniform(gen, n, p.go_speed),
+                             _uniform(gen, n, p.patience), _uniform(gen, n, p.speed_up), v0], dim=-1).float()
 
     # longitudinal simulation along the path
-    s_stop = x0 - STOP_LINE_X  # arc length to the stop line
+    s_stop = stop_at if style == "stop_in_zone" else x0 - STOP_LINE_X  # arc length to where it stops
     s = torch.zeros(n, dtype=torch.float64)
     v = v0.clone()
     waited = torch.zeros(n, dtype=torch.float64)
@@ -299,33 +361,89 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
         errs[:, k] = err
         verrs[:, k] = verr
     observed = torch.cat([pos + errs, vel + verrs, sig], dim=-1)
-    return AgentTrajectories(true.float(), observed.float(), route, hes, yld)
+    out = AgentTrajectories(true.float(), observed.float(), route, hes, yld)
+    if reactive:
+        out.reactive[:] = True
+        out.params = react
+    return out
+
+
+def reactive_step(route: Tensor, params: Tensor, s: Tensor, v: Tensor, timer: Tensor, ego_y: Tensor, ego_v: Tensor,
+                  *, accel_max: float = 1.0, decel_max: float = 1.5, dt: float = DT) -> tuple[Tensor, Tensor, Tensor]:
+    """One step of the interaction-aware human driver; returns ``(s, v, timer)`` after ``dt``.
+
+    The agent sees the ego's position ``ego_y`` and speed ``ego_v`` as they were its reaction
+    time ago (the caller passes the delayed values). While neither has passed the conflict
+    point (where its path meets the ego's line) and the ego is moving (``ego_v > go_speed``),
+    it answers according to its assertiveness ``a``:
+
+    * ``a < 0.4`` **yields**: brakes to stop at the stop line (or at once, if past it) and
+      waits until the ego has crossed or stops again;
+    * ``0.4 <= a < 0.7`` **hesitates**: crawls at 30% of its speed for ``patience`` s, then
+      goes on whatever the ego does;
+    * ``a >= 0.7`` **speeds up** to ``speed_up`` times its nominal speed, to pass first.
+
+    A stopped or slow ego is read as an invitation: the agent **goes** at its nominal speed.
+    Every agent brakes hard when the ego is inside the conflict zone ahead of it and it could
+    not otherwise stop before it (a human avoids an imminent crash, late by its reaction time).
+    All tensors ``[n]``; ``params`` ``[n, len(REACTIVE_PARAMS)]``.
+    """
+    x0, v_nom, off, assertive, _, go_speed, patience, speed_up, _ = params.unbind(-1)
+    s_c, y_c = conflict_point(route, x0, off)
+    d_a, d_e = s_c - s, y_c - ego_y
+    open_road = (d_a < -0.8) | (d_e < -0.8)  # one of them is past the conflict point
+    ego_going = (ego_v > go_speed) & ~open_road
+    yields, hesitates = ego_going & (assertive < 0.4), ego_going & (assertive >= 0.4) & (assertive < 0.7)
+    hesitates = hesitates & (timer < patience)
+    s_stop = x0 - STOP_LINE_X
+    v_stop = torch.sqrt(2 * 0.8 * decel_max * (s_stop - s).clamp(min=0.0))
+    v_des = torch.where(ego_going & (assertive >= 0.7), speed_up * v_nom, v_nom)
+    v_des = torch.where(hesitates, 0.3 * v_nom, v_des)
+    v_des = torch.where(yields, torch.minimum(v_nom, v_stop), v_des)
+    a = ((v_des - v) / 0.5).clamp(-decel_max, accel_max)
+    # imminent conflict: the ego occupies the crossing ahead of the agent, which could not stop before it
+    brake_dist = v**2 / (2 * decel_max) + 0.75
+    danger = (d_e.abs() < 0.75) & (d_a > 0) & (d_a < brake_dist + 0.5)
+    a = torch.where(danger, torch.full_like(a, -2.0 * decel_max), a)
+    v_new = (v + a * dt).clamp(min=0.0)
+    s_new = s + 0.5 * (v + v_new) * dt
+    timer = timer + dt * (ego_going & (assertive >= 0.4) & (assertive < 0.7)).to(timer.dtype)
+    return s_new, v_new, timer
 
 
 def make_test_set(n_per_behaviour: int = 80, *, seed: int = 2024, horizon: int = 500,
-                  behaviours=BEHAVIOURS) -> AgentTrajectories:
+                  behaviours=BEHAVIOURS, style: str = "mixed") -> AgentTrajectories:
     """The fixed test set: ``n_per_behaviour`` episodes of each behaviour (default 4 x 80 = 320).
+
+    ``style="reactive"`` / ``"stop_in_zone"`` give the held-out sets of reactive agents and of
+    agents that stop on the ego's line (see :func:`sample_agent_trajectories`).
 
     >>> ts = make_test_set(2, horizon=20)
     >>> ts.behaviour.tolist()
     [0, 1, 2, 3, 0, 1, 2, 3]
     """
     return sample_agent_trajectories(n_per_behaviour * len(behaviours), seed=seed, split="test",
-                                     behaviours=behaviours, horizon=horizon)
+                                     behaviours=behaviours, horizon=horizon, style=style)
 
 
-def load_recorded_trajectories(path_or_array, *, horizon: int = 500) -> AgentTrajectories:
-    """Load recorded agent trajectories from a ``.npy`` (or an array) of rows ``[x, y, vx, vy, sx, sy]`` at 0.1 s.
+def load_recorded_trajectories(path_or_array, *, horizon: int = 500, routes=None) -> AgentTrajectories:
+    """Load recorded agent trajectories from a ``.npy`` (or an array) of rows at 0.1 s.
 
-    Accepted layouts: ``[T, 6]`` (one trajectory), ``[N, T, 6]``, or an object array / list of
-    ``[T_i, 6]`` arrays. Trajectories shorter than ``horizon + 1`` continue at their last
-    velocity; longer ones are cut. The recorded position is taken as the truth for collisions.
+    Rows are ``[x, y, vx, vy, sx, sy]`` (the perceived state; it is then also taken as the
+    truth) or ``[x, y, vx, vy, sx, sy, ex, ey]`` with the perception error of the position
+    (perceived minus true), so collisions use the true position ``(x - ex, y - ey)``.
+    Layouts: ``[T, C]`` (one trajectory), ``[N, T, C]``, a list / object array of ``[T_i, C]``,
+    or a pickled dict ``{"trajectories": ..., "routes": [...]}``. ``routes`` (or the dict's)
+    labels each trajectory with a name of :data:`BEHAVIOURS` so per-route tables keep it;
+    without labels every trajectory is ``recorded``. Short trajectories continue at their
+    last velocity; long ones are cut.
 
     >>> import numpy as np
-    >>> rows = np.zeros((30, 6)); rows[:, 0] = np.linspace(3, 0, 30); rows[:, 1] = 0.5
-    >>> rows[:, 2] = -1.0; rows[:, 4:] = 0.05
-    >>> load_recorded_trajectories(rows, horizon=40).true.shape
-    torch.Size([1, 41, 4])
+    >>> rows = np.zeros((30, 8)); rows[:, 0] = np.linspace(3, 0, 30); rows[:, 1] = 0.5
+    >>> rows[:, 2] = -1.0; rows[:, 4:6] = 0.05; rows[:, 6] = 0.1
+    >>> b = load_recorded_trajectories(rows, horizon=40, routes=["straight"])
+    >>> b.true.shape, round(float(b.observed[0, 0, 0] - b.true[0, 0, 0]), 3), b.behaviour.tolist()
+    (torch.Size([1, 41, 4]), 0.1, [0])
     """
     where = "array"
     if isinstance(path_or_array, (str, Path)):
@@ -339,6 +457,13 @@ def load_recorded_trajectories(path_or_array, *, horizon: int = 500) -> AgentTra
             raise ValueError(f"recorded trajectories {where}: not a readable .npy file ({e})") from e
     else:
         data = path_or_array
+    if isinstance(data, np.ndarray) and data.dtype == object and data.ndim == 0:
+        data = data.item()
+    if isinstance(data, dict):
+        if "trajectories" not in data:
+            raise ValueError(f"recorded trajectories {where}: a dict needs the key 'trajectories' (and 'routes')")
+        routes = data.get("routes", routes)
+        data = data["trajectories"]
     if isinstance(data, np.ndarray) and data.dtype != object and data.ndim == 2:
         trajs = [data]
     elif isinstance(data, np.ndarray) and data.dtype != object and data.ndim == 3:
@@ -347,28 +472,36 @@ def load_recorded_trajectories(path_or_array, *, horizon: int = 500) -> AgentTra
         trajs = [np.asarray(t, dtype=np.float64) for t in list(data)]
     else:
         raise ValueError(f"recorded trajectories {where}: shape {getattr(data, 'shape', None)} is invalid; "
-                         "allowed: [T, 6], [N, T, 6] or a list of [T_i, 6] arrays")
+                         "allowed: [T, 6], [N, T, 6] or a list of [T_i, 6] arrays (8 columns with the error)")
     if not trajs:
         raise ValueError(f"recorded trajectories {where}: contains no trajectory")
     if not isinstance(horizon, int) or horizon < 1:
         raise ValueError(f"horizon={horizon!r} is invalid; allowed: an integer >= 1")
+    if routes is not None:
+        routes = list(routes)
+        bad = [r for r in routes if r not in BEHAVIOURS]
+        if len(routes) != len(trajs) or bad:
+            raise ValueError(f"recorded trajectories {where}: routes={routes[:5]!r}... is invalid; allowed: one name "
+                             f"of {list(BEHAVIOURS)} per trajectory ({len(trajs)})")
     T = horizon + 1
+    names = ["x", "y", "vx", "vy", "sigma_x", "sigma_y", "error_x", "error_y"]
     out = []
     for i, t in enumerate(trajs):
         t = np.asarray(t, dtype=np.float64)
-        if t.ndim != 2 or t.shape[1] != 6:
+        if t.ndim != 2 or t.shape[1] not in (6, 8):
             raise ValueError(f"recorded trajectories {where}: trajectory {i} has shape {t.shape}; "
-                             "allowed: [T, 6] rows of x, y, vx, vy, sigma_x, sigma_y")
+                             "allowed: [T, 6] rows of x, y, vx, vy, sigma_x, sigma_y (+ error_x, error_y)")
         if t.shape[0] < 2:
             raise ValueError(f"recorded trajectories {where}: trajectory {i} has {t.shape[0]} rows; allowed: >= 2")
         if not np.isfinite(t).all():
             r, c = np.argwhere(~np.isfinite(t))[0]
-            name = ["x", "y", "vx", "vy", "sigma_x", "sigma_y"][c]
-            raise ValueError(f"recorded trajectories {where}: trajectory {i} row {r} column {name} is not finite")
-        if (t[:, 4:] < 0).any():
-            r, c = np.argwhere(t[:, 4:] < 0)[0]
+            raise ValueError(f"recorded trajectories {where}: trajectory {i} row {r} column {names[c]} is not finite")
+        if (t[:, 4:6] < 0).any():
+            r, c = np.argwhere(t[:, 4:6] < 0)[0]
             raise ValueError(f"recorded trajectories {where}: trajectory {i} row {r} "
                              f"{['sigma_x', 'sigma_y'][c]}={t[r, 4 + c]} is invalid; allowed: >= 0")
+        if t.shape[1] == 6:
+            t = np.concatenate([t, np.zeros((t.shape[0], 2))], axis=1)
         if t.shape[0] < T:
             k = np.arange(1, T - t.shape[0] + 1)[:, None] * DT
             ext = np.concatenate([t[-1, :2] + k * t[-1, 2:4], np.repeat(t[-1:, 2:], len(k), 0)], axis=1)
@@ -376,10 +509,13 @@ def load_recorded_trajectories(path_or_array, *, horizon: int = 500) -> AgentTra
         out.append(t[:T])
     arr = torch.tensor(np.stack(out), dtype=torch.float32)
     n = arr.shape[0]
+    true = torch.cat([arr[..., :2] - arr[..., 6:8], arr[..., 2:4]], dim=-1)
+    behaviour = (torch.tensor([BEHAVIOURS.index(r) for r in routes]) if routes is not None
+                 else torch.full((n,), RECORDED, dtype=torch.long))
     false = torch.zeros(n, dtype=torch.bool)
-    return AgentTrajectories(arr[..., :4].clone(), arr.clone(), torch.full((n,), RECORDED, dtype=torch.long),
-                             false, false.clone())
+    return AgentTrajectories(true, arr[..., :6].clone(), behaviour, false, false.clone())
 
 
 __all__ = ["AgentModelParams", "AgentTrajectories", "BEHAVIOURS", "BEHAVIOUR_NAMES", "TRAIN_BEHAVIOURS",
+           "STYLES", "REACTIVE_PARAMS", "reactive_step", "conflict_point", "arc_to_x",
            "sample_agent_trajectories", "make_test_set", "load_recorded_trajectories", "split_seed"]
