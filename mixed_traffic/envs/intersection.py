@@ -234,21 +234,21 @@ class IntersectionEnv(EnvBase):
         t = t.clamp(max=self.bank.horizon)
         i, k = idx.squeeze(-1), t.squeeze(-1)
         obs, true = self.bank.observed[i, k], self.bank.true[i, k]
-        react = self.bank.reactive[i]
-        if not react.any():
+        r = self.bank.reactive[i].nonzero().squeeze(-1)
+        if not len(r):
             return obs, true
-        st, prm, route = self._state, self.bank.params[i], self.bank.behaviour[i]
-        s, va = st["s"].squeeze(-1), st["va"].squeeze(-1)
-        path = lambda arc: _path(route, arc[:, None], prm[:, 0], prm[:, 2], torch.zeros_like(s),  # noqa: E731
-                                 torch.ones_like(s))[:, 0]
-        pos = path(s)
-        live = torch.cat([pos, (pos - path(s - va * self.dt)) / self.dt], dim=-1)
-        err = obs[:, :4] - true  # the reference trajectory's perception error
-        m = react[:, None]
-        return (torch.where(m, torch.cat([live + err, obs[:, 4:6]], -1), obs), torch.where(m, live, true))
+        prm, route = self.bank.params[i[r]], self.bank.behaviour[i[r]]
+        s, va = self._state["s"][r], self._state["va"][r]
+        arcs = torch.cat([s, s - va * self.dt], dim=-1)  # now and one step back (finite-difference velocity)
+        pos = _path(route, arcs, prm[:, 0], prm[:, 2], torch.zeros_like(s[:, 0]), torch.ones_like(s[:, 0]))
+        live = torch.cat([pos[:, 0], (pos[:, 0] - pos[:, 1]) / self.dt], dim=-1)
+        obs, true = obs.clone(), true.clone()
+        obs[r, :4] += live - true[r]  # live state plus the reference trajectory's perception error
+        true[r] = live
+        return obs, true
 
-    def _obs_td(self, y, v, t, idx, accel, collision, success, oob) -> TensorDict:
-        obs_a, true_a = self._agent(idx, t)
+    def _obs_td(self, y, v, t, idx, accel, collision, success, oob, agent=None) -> TensorDict:
+        obs_a, true_a = self._agent(idx, t) if agent is None else agent
         B = self.batch_size
         return TensorDict({
             "observation": torch.cat([y, v, obs_a], dim=-1),
@@ -313,13 +313,16 @@ class IntersectionEnv(EnvBase):
         t_new = t + 1
         hist = torch.cat([torch.cat([y_new, v_new], -1)[:, None], st["hist"][:, :-1]], dim=1)
         i = idx.squeeze(-1)
-        if self.bank.reactive[i].any():  # reactive agents answer the ego as it was their reaction time ago
-            delay = self.bank.params[i, 4].long().clamp(0, self.HIST - 1)
-            seen = hist[torch.arange(hist.shape[0]), delay]
-            s_a, v_a, timer = reactive_step(self.bank.behaviour[i], self.bank.params[i], st["s"].squeeze(-1),
-                                            st["va"].squeeze(-1), st["timer"].squeeze(-1), seen[:, 0], seen[:, 1],
-                                            dt=self.dt)
-            st = dict(st, s=s_a[:, None], va=v_a[:, None], timer=timer[:, None])
+        r = self.bank.reactive[i].nonzero().squeeze(-1)
+        if len(r):  # reactive agents answer the ego as it was their reaction time ago
+            ir = i[r]
+            seen = hist[r, self.bank.params[ir, 4].long().clamp(0, self.HIST - 1)]
+            out = reactive_step(self.bank.behaviour[ir], self.bank.params[ir], st["s"][r, 0], st["va"][r, 0],
+                                st["timer"][r, 0], seen[:, 0], seen[:, 1], dt=self.dt)
+            st = dict(st)
+            for k, new in zip(("s", "va", "timer"), out):
+                st[k] = st[k].clone()
+                st[k][r, 0] = new
         self._state = dict(st, hist=hist)
         obs_a, true_a = self._agent(idx, t_new)
         d_true = torch.sqrt((EGO_X - true_a[:, 0:1]) ** 2 + (y_new - true_a[:, 1:2]) ** 2)
@@ -333,7 +336,7 @@ class IntersectionEnv(EnvBase):
                   + self.r_goal * success.float() - self.c_crash_reward * collision.float())
         cost = self.safety_cost(y_new, obs_a) + self.c_crash * collision.float()
         self._state.update(y=y_new, v=v_new, t=t_new, idx=idx)
-        out = self._obs_td(y_new, v_new, t_new, idx, a_exec, collision, success, oob)
+        out = self._obs_td(y_new, v_new, t_new, idx, a_exec, collision, success, oob, agent=(obs_a, true_a))
         out.set("reward", reward)
         out.set("cost", cost)
         out.set("done", terminated | truncated)
