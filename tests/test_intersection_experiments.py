@@ -34,7 +34,8 @@ def _transform_types() -> dict:
     )
 
     return {"non_negative_reward": NonNegativeReward, "safety_layer": SafetyLayer, "residual_damper": ResidualAction,
-            "intervention_cost": InterventionCost, "residual_idm": ResidualAction, "jerk_penalty": JerkPenalty,
+            "intervention_cost": InterventionCost, "residual_idm": ResidualAction, "residual_nnmpc": ResidualAction,
+            "jerk_penalty": JerkPenalty,
             "state_discretizer": StateDiscretizer, "barrier_force": BarrierForce, "residual_nmpc": ResidualNMPC,
             "conflict_cost": ConflictCost}
 
@@ -44,6 +45,11 @@ def test_experiment_builds_the_transforms_loss_and_policy_it_names(name, tmp_pat
     cfg = compose([f"experiment={name}", f"loss.bc.demos={tmp_path / 'demos.pt'}"]
                   if "lppo_bc" in name else [f"experiment={name}"])
     assert cfg.name == name
+    if "residual_nnmpc" in cfg.transforms.chain:  # the frozen NNMPC is an artefact: a tiny one stands in
+        from mixed_traffic.controllers.deeplcc.nnmpc import NNMPC
+
+        NNMPC().save(tmp_path / "nnmpc.pt")
+        cfg.transforms.residual_nnmpc.checkpoint = str(tmp_path / "nnmpc.pt")
     if cfg.get("controller"):  # a classical controller: evaluated only, nothing to train
         assert cfg.controller == "nmpc" and cfg.transforms.chain == []
         return
