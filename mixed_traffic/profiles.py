@@ -19,6 +19,7 @@ harness, so a profile means the same thing everywhere.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 
@@ -220,12 +221,16 @@ class RowProfiles:
         if not self.parts:
             raise ValueError("RowProfiles: parts is empty; allowed: one or more profiles")
 
+    @functools.cached_property
+    def widths(self) -> tuple[int, ...]:
+        """Number of parameters of each part (fixed by its settings)."""
+        return tuple(int(part.sample(0).shape[-1]) for part in self.parts)
+
     def sample_rows(self, rows: Tensor, generator: torch.Generator | None = None) -> Tensor:
         rows = torch.as_tensor(rows, dtype=torch.long).reshape(-1)
         which = rows % len(self.parts)
         drawn = [part.sample(int((which == j).sum()), generator) for j, part in enumerate(self.parts)]
-        width = max(d.shape[-1] for d in drawn)
-        out = torch.zeros(rows.numel(), 1 + width)
+        out = torch.zeros(rows.numel(), 1 + max(self.widths))
         out[:, 0] = which.float()
         for j, d in enumerate(drawn):
             out[which == j, 1:1 + d.shape[-1]] = d.float()
@@ -237,10 +242,9 @@ class RowProfiles:
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
         which = params[:, 0].long()
         out = torch.empty_like(t)
-        for j, part in enumerate(self.parts):
+        for j, (part, k) in enumerate(zip(self.parts, self.widths)):
             m = which == j
             if bool(m.any()):
-                k = part.sample(0).shape[-1]
                 out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
         return out
 

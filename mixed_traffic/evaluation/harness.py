@@ -40,12 +40,11 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
 
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
            "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate",
            "mean_abs_delta", "length")
-TRAINING_ONLY = ("jerk_penalty",)  # reward shaping the evaluation leaves out (returns stay the task's)
 
 
 @dataclass
@@ -169,23 +168,17 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
     return m, trace
 
 
-def standard_spacing(cfg: DictConfig, profile: str) -> float:
-    """The start gap of the evaluation scenario (the ring's even spacing unless ``init_spacing`` is set)."""
+def eval_scenario(cfg: DictConfig, profile: str):
+    """The scenario one evaluation profile runs (``cfg.env`` with :func:`eval_env_overrides`)."""
     from mixed_traffic.scenarios import get_scenario
     from mixed_traffic.training.builders import env_kwargs
 
-    return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile))).initial_spacing()
+    return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile)))
 
 
 def split_rows(m: dict, tr: Trace, rows: torch.Tensor) -> tuple[dict, Trace]:
     """The metrics and trace of a subset of rows."""
     return ({k: v[rows] for k, v in m.items()}, Trace(**{f: getattr(tr, f)[rows] for f in Trace.__dataclass_fields__}))
-
-
-def start_labels(cfg: DictConfig, profile: str) -> tuple[list[float], list[str]]:
-    """Start gaps of the layer-free passes: the standard one, then ``cfg.eval.close_starts``."""
-    starts = [standard_spacing(cfg, profile)] + [float(x) for x in (cfg.eval.close_starts or [])]
-    return starts, [f"standard ({starts[0]:.1f} m)"] + [f"{x:g} m" for x in starts[1:]]
 
 
 def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, seed: int, policy_factory=None,
@@ -202,23 +195,18 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
     Returns ``({profile: (metrics, trace)}, {profile: {start label: (metrics, trace)}})``.
     """
     from mixed_traffic.profiles import RowProfiles
-    from mixed_traffic.scenarios import get_scenario
-    from mixed_traffic.training.builders import env_kwargs
 
     P = len(profiles)
-    starts = {p: start_labels(cfg, p) for p in profiles} if layer_free else {}
-    V = 1 + (len(next(iter(starts.values()))[0]) if layer_free else 0)
-    gaps = []  # start gap of row i % (P * V)
-    for i in range(P * V):
-        prof, var = profiles[i % P], (i // P) % V
-        gaps.append(standard_spacing(cfg, prof) if var == 0 else starts[prof][0][var - 1])
+    scenarios = [eval_scenario(cfg, p) for p in profiles]
+    close = [float(x) for x in (cfg.eval.close_starts or [])]
+    # start gaps per profile: variant 0 (with the layer) and 1 start at the standard gap
+    starts = [[sc.initial_spacing()] + close for sc in scenarios]
+    V = 1 + (len(close) + 1 if layer_free else 0)
     ov = eval_env_overrides(cfg, profiles[0])
-    ov["init_spacing_rows"] = tuple(gaps)
+    ov["init_spacing_rows"] = tuple(starts[i % P][max(0, (i // P) % V - 1)] for i in range(P * V))  # row i % (P*V)
     env = make_transformed_env(cfg, num_envs=P * V * episodes, seed=seed, without=TRAINING_ONLY, **ov)
     base = env.base_env
-    parts = tuple(get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, p))).make_profile()
-                  for p in profiles)
-    base.set_profile(RowProfiles(parts))
+    base.set_profile(RowProfiles(tuple(sc.make_profile() for sc in scenarios)))
     rows = torch.arange(P * V * episodes)
     variant = (rows // P) % V
     if layer_free:
@@ -243,8 +231,9 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
     for j, prof in enumerate(profiles):
         with_layer[prof] = split_rows(m, trace, rows[(rows % P == j) & (variant == 0)])
         if layer_free:
+            labels = [f"standard ({starts[j][0]:.1f} m)"] + [f"{x:g} m" for x in close]
             without_layer[prof] = {label: split_rows(m, trace, rows[(rows % P == j) & (variant == v + 1)])
-                                   for v, label in enumerate(starts[prof][1])}
+                                   for v, label in enumerate(labels)}
     return with_layer, without_layer
 
 

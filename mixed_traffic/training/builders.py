@@ -252,14 +252,20 @@ def _input(p, env: EnvBase) -> tuple[nn.Module | None, int]:
     return None, sum(dims)
 
 
+def _value_head(width: int, p) -> nn.Linear:
+    """The critic's output layer: orthogonal init, bias ``policy.value_bias_init``."""
+    lin = _ortho(nn.Linear(width, 1), 1.0)
+    nn.init.constant_(lin.bias, float(p.get("value_bias_init", 0.0)))
+    return lin
+
+
 def make_value(cfg: DictConfig, env: EnvBase, out_key: str = "state_value", trunk: Trunk | None = None):
     """A critic with its own trunk (``policy.hidden``; built here unless given) writing ``out_key``."""
     p = cfg.policy
     feats, in_dim = _input(p, env)
     trunk = trunk if trunk is not None else Trunk(in_dim, list(p.hidden), p.activation)
     hidden = "hidden_v" if out_key == "state_value" else f"hidden_{out_key}"
-    lin = _ortho(nn.Linear(trunk.out_dim, 1), 1.0)
-    nn.init.constant_(lin.bias, float(p.get("value_bias_init", 0.0)))
+    lin = _value_head(trunk.out_dim, p)
     return TensorDictSequential(TensorDictModule(_net(trunk, feats, p), in_keys=_in_keys(p), out_keys=[hidden]),
                                 TensorDictModule(lin, in_keys=[hidden], out_keys=[out_key]))
 
@@ -284,8 +290,7 @@ def make_actor_critic(cfg: DictConfig, env: EnvBase) -> tuple[ProbabilisticActor
     )
     if critic_trunk is not None:
         return actor, make_value(cfg, env, trunk=critic_trunk)
-    v_lin = _ortho(nn.Linear(trunk.out_dim, 1), 1.0)
-    nn.init.constant_(v_lin.bias, float(p.get("value_bias_init", 0.0)))
+    v_lin = _value_head(trunk.out_dim, p)
     critic = TensorDictSequential(trunk_mod, TensorDictModule(v_lin, in_keys=["hidden"], out_keys=["state_value"]))
     return actor, critic
 
@@ -391,7 +396,7 @@ def check_collector_config(cfg: DictConfig) -> None:
         raise ConfigError("trainer.num_envs", f"{rows} rows do not split over trainer.collector_workers={workers}",
                           f"a multiple of {workers} (each worker steps num_envs / collector_workers rows)")
     if cfg.env.get("backend") == "sumo":
-        per = rows if kind == "single" else rows // workers
+        per = collector_rows(cfg)
         if per != 1:
             raise ConfigError(
                 "trainer.num_envs", f"{rows} with env.backend=sumo and trainer.collector={kind} (collector_workers="
