@@ -93,11 +93,13 @@ class InterventionCostConfig:
     """The safety layer's intervention added to the constraint cost (``transforms.InterventionCost``).
 
     Per step: ``coef * c_int`` with ``c_int`` = ``|delta| / (action range)`` (``magnitude``),
-    the clip flag (``indicator``) or their mean (``both``).
+    the clip flag (``indicator``) or their mean (``both``); ``direction`` counts every
+    correction (``both``), only the layer's braking (``brake``) or only its push-ups (``push``).
     """
 
     coef: float = 1.0
     mode: str = "both"
+    direction: str = "both"
 
 
 @dataclass

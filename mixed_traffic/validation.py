@@ -119,6 +119,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.safety_layer.mode": OneOf(("stopping", "one_step")),
     "transforms.intervention_cost.coef": Real(0, lo_open=True),
     "transforms.intervention_cost.mode": OneOf(("magnitude", "indicator", "both")),
+    "transforms.intervention_cost.direction": OneOf(("both", "brake", "push")),
     "transforms.residual.base": OneOf(("idm", "ovm")),
     "transforms.residual.weight": Real(0),
     "transforms.jerk_penalty.weight": Real(0),

@@ -57,11 +57,30 @@ def test_intervention_cost_is_zero_when_the_layer_is_idle():
     assert (td["next", "safety", "intervention_cost"][idle] == 0).all()
 
 
+def test_intervention_cost_direction_counts_braking_or_pushing_only():
+    """``brake`` prices the layer braking for the policy and not its s_max pull-up, ``push`` the reverse."""
+    def run(direction, accel):
+        env = TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                             Compose(NonNegativeReward(), SafetyLayer(s_min=5.0, s_max=30.0),
+                                     InterventionCost(mode="both", direction=direction)))
+        td = env.rollout(150, lambda td: td.set("action", torch.full((2, 1), accel)), break_when_any_done=False)
+        return td["next", "safety", "delta"], td["next", "safety", "intervention_cost"]
+
+    delta, c = run("brake", 3.0)  # full throttle: the layer brakes
+    assert (delta < 0).any() and torch.allclose(c, torch.where(delta < 0, 0.5 * (delta.abs() / 6.0 + 1.0), 0.0))
+    delta, c = run("brake", -3.0)  # full braking from the 73.4 m start: the layer only pulls up (s_max)
+    assert (delta > 0).any() and not (delta < 0).any() and (c == 0).all()
+    delta, c = run("push", -3.0)
+    assert torch.allclose(c, torch.where(delta > 0, 0.5 * (delta.abs() / 6.0 + 1.0), 0.0)) and (c > 0).any()
+
+
 def test_intervention_cost_bad_arguments_name_the_field():
     with pytest.raises(ValueError, match="mode="):
         InterventionCost(mode="sometimes")
     with pytest.raises(ValueError, match="coef="):
         InterventionCost(coef=0.0)
+    with pytest.raises(ValueError, match="direction="):
+        InterventionCost(direction="down")
     with pytest.raises(ValueError, match="scale="):
         InterventionCost(scale=-1.0)
 
@@ -214,6 +233,7 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("loss.lambda_kp=-1", "loss.lambda_kp"),
     ("transforms.intervention_cost.coef=0", "transforms.intervention_cost.coef"),
     ("transforms.intervention_cost.mode=sometimes", "transforms.intervention_cost.mode"),
+    ("transforms.intervention_cost.direction=down", "transforms.intervention_cost.direction"),
     ("transforms.residual.weight=-0.5", "transforms.residual.weight"),
     ("eval.intervention_bar=2", "eval.intervention_bar"),
 ])

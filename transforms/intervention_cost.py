@@ -22,6 +22,7 @@ from torchrl.envs.transforms import Transform
 from transforms.specs import action_range
 
 MODES = ("magnitude", "indicator", "both")
+DIRECTIONS = ("both", "brake", "push")
 
 
 class InterventionCost(Transform):
@@ -37,6 +38,11 @@ class InterventionCost(Transform):
     * ``mode="both"`` (default): the mean of the two: every clip costs at least ``1/2``,
       however small, and a large correction costs more than a small one.
 
+    ``direction`` chooses which corrections count: ``"both"`` (default), ``"brake"`` (only
+    where the layer lowered the command: it braked for the policy) or ``"push"`` (only
+    where it raised it, e.g. the head-gap bound ``s_max`` pulling the CAV up). ``"brake"``
+    prices the layer's safety work alone and leaves the catch-up to a far head unpriced.
+
     The CAV terms are summed (as the env's s_min cost), multiplied by ``coef`` and added
     to ``cost_key`` in place; the intervention cost alone is also written to
     ``out_key`` (declared as an observation entry, so it does not join the reward keys).
@@ -46,6 +52,7 @@ class InterventionCost(Transform):
     Args:
         coef: weight of the intervention cost in the total cost (> 0, default 1.0).
         mode: ``"magnitude"``, ``"indicator"`` or ``"both"``.
+        direction: ``"both"``, ``"brake"`` or ``"push"`` (which corrections count).
         scale: normalisation of ``|delta|`` (m/s^2, > 0); ``None`` reads the action bounds.
         delta_key, clipped_key: the layer's outputs (defaults: the layer's defaults).
         cost_key: the per-step constraint cost to add to (default ``"cost"``).
@@ -65,16 +72,18 @@ class InterventionCost(Transform):
     """
 
     def __init__(self, coef: float = 1.0, mode: str = "both", scale: float | None = None, *,
-                 delta_key: NestedKey = ("safety", "delta"), clipped_key: NestedKey = ("safety", "clipped"),
+                 direction: str = "both", delta_key: NestedKey = ("safety", "delta"), clipped_key: NestedKey = ("safety", "clipped"),
                  cost_key: NestedKey = "cost", out_key: NestedKey = ("safety", "intervention_cost")):
         if mode not in MODES:
             raise ValueError(f"InterventionCost: mode={mode!r} is invalid; allowed: {list(MODES)}")
+        if direction not in DIRECTIONS:
+            raise ValueError(f"InterventionCost: direction={direction!r} is invalid; allowed: {list(DIRECTIONS)}")
         if not coef > 0:
             raise ValueError(f"InterventionCost: coef={coef!r} is invalid; allowed: > 0")
         if scale is not None and not scale > 0:
             raise ValueError(f"InterventionCost: scale={scale!r} is invalid; allowed: > 0 (m/s^2) or None")
         super().__init__(in_keys=[delta_key, clipped_key, cost_key], out_keys=[cost_key, out_key])
-        self.coef, self.mode, self._scale = float(coef), mode, scale
+        self.coef, self.mode, self._scale, self.direction = float(coef), mode, scale, direction
         self.delta_key, self.clipped_key, self.cost_key, self.out_key = delta_key, clipped_key, cost_key, out_key
 
     @property
@@ -87,6 +96,10 @@ class InterventionCost(Transform):
         """``c_int`` summed over the CAVs, ``[..., 1]`` (before ``coef``)."""
         if clipped is None:
             clipped = delta != 0
+        if self.direction != "both":
+            counted = delta < 0 if self.direction == "brake" else delta > 0
+            delta = torch.where(counted, delta, torch.zeros_like(delta))
+            clipped = clipped & counted
         mag = delta.abs() / self.scale
         ind = clipped.to(delta.dtype)
         c = mag if self.mode == "magnitude" else ind if self.mode == "indicator" else 0.5 * (mag + ind)
@@ -118,4 +131,4 @@ class InterventionCost(Transform):
         return observation_spec
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(coef={self.coef}, mode={self.mode!r})"
+        return f"{type(self).__name__}(coef={self.coef}, mode={self.mode!r}, direction={self.direction!r})"

@@ -58,7 +58,7 @@ def _intervention_cost(tcfg, env):
     from transforms import InterventionCost
 
     c = tcfg.intervention_cost
-    return InterventionCost(coef=c.coef, mode=c.mode)
+    return InterventionCost(coef=c.coef, mode=c.mode, direction=c.direction)
 
 
 def _jerk_penalty(tcfg, env):
