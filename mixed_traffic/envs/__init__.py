@@ -18,7 +18,7 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
     Args:
         scenario: ``"ring"``, ``"deeplcc"``, ``"ring_wave"``, ``"intersection"`` or ``"platoon"``
             (the DeeP-LCC platoon on the physics of the DeeP-LCC closed loop, :mod:`.platoon`).
-        backend: ``"torch"`` (batched pure-torch simulator) or ``"sumo"`` (ring only,
+        backend: ``"torch"`` (batched pure-torch simulator) or ``"sumo"`` (ring and platoon,
             one libsumo simulation per process; batch through ``ParallelEnv``).
         batch_size: number of independent scenarios stepped together (torch backend).
         seed: seeds the environment's own generator (profiles, initial states).
@@ -44,14 +44,17 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
 
         env = IntersectionEnv(batch_size=batch_size, device=device, **overrides)
     elif scenario == "platoon":
-        if backend != "torch":
-            raise ValueError("backend: the platoon scenario has only the 'torch' backend")
-        from mixed_traffic.envs.platoon import PlatoonEnv
+        if backend == "sumo":
+            from mixed_traffic.envs.sumo_platoon import SumoPlatoonEnv
 
-        env = PlatoonEnv(batch_size=batch_size, device=device, **overrides)
+            env = SumoPlatoonEnv(batch_size=batch_size, device=device, **overrides)
+        else:
+            from mixed_traffic.envs.platoon import PlatoonEnv
+
+            env = PlatoonEnv(batch_size=batch_size, device=device, **overrides)
     elif backend == "sumo":
         if scenario != "ring":
-            raise ValueError(f"backend 'sumo' supports scenario 'ring' only, got {scenario!r}")
+            raise ValueError(f"backend 'sumo' supports scenarios 'ring' and 'platoon' only, got {scenario!r}")
         if batch_size != 1:
             raise ValueError("batch_size: the SUMO backend runs one simulation per process (batch_size=1); "
                              "batch it with torchrl.envs.ParallelEnv")

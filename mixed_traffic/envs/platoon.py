@@ -283,6 +283,15 @@ class PlatoonEnv(EnvBase):
         mean = (heads * valid).sum(-1) / count.to(DTYPE)
         return torch.where(self.adaptive[rows], mean, torch.full_like(mean, self.scenario.v_star))
 
+    def _initial_state(self, v0: float) -> tuple[Tensor, Tensor]:
+        """One row's platoon at equilibrium at speed ``v0`` (``[1, n]`` positions, speeds); a backend hook."""
+        return init_state(1, self.cfg, v0=v0)
+
+    def _physics(self, pos: Tensor, vel: Tensor, u: Tensor, v_head_next: Tensor,
+                 params: dict) -> tuple[Tensor, Tensor, Tensor]:
+        """Move the rows one step: ``(pos', vel', executed CAV accel)``; a backend hook (SUMO moves them there)."""
+        return step(pos, vel, u, v_head_next, self.cfg, self.rng, params=params)
+
     def _advance(self, rows: Tensor | slice, u: Tensor) -> tuple[Tensor, Tensor]:
         """Step the rows ``rows`` with CAV input ``u``; push the instant into the window. Returns (J, executed).
 
@@ -298,7 +307,7 @@ class PlatoonEnv(EnvBase):
         head = self.head_v if every else self.head_v[rows]
         v_head_next = head.gather(1, (k + 1).clamp(max=head.shape[1] - 1)[:, None]).squeeze(1)
         params = self.hdv if every else {key: v[rows] for key, v in self.hdv.items()}
-        new_pos, new_vel, executed = step(pos, vel, u, v_head_next, self.cfg, self.rng, params=params)
+        new_pos, new_vel, executed = self._physics(pos, vel, u, v_head_next, params)
         J = (sc.weight_v * ((vel[:, 1:] - v_star[:, None]) ** 2).sum(-1)
              + sc.weight_s * ((g_cav - sc.s_star) ** 2).sum(-1)
              + sc.weight_u * (executed ** 2).sum(-1))
@@ -384,7 +393,7 @@ class PlatoonEnv(EnvBase):
                 spread = 1.0 + sc.hetero_spread * (2.0 * torch.rand(k, nf, generator=self.rng, dtype=DTYPE) - 1.0)
                 self.hdv[name][idx] = nominal * spread
         for r, v0 in zip(idx.tolist(), head[:, 0].tolist(), strict=True):
-            p, v = init_state(1, self.cfg, v0=v0)
+            p, v = self._initial_state(v0)
             self.pos[r], self.vel[r] = p[0], v[0]
         self.vel[idx, 0] = head[:, 0]
         self.acc[idx] = 0.0

@@ -97,18 +97,9 @@ def build_ring_network(ring_length: float, out_dir: str, *, n_edges: int = 4,
         f.write("\n".join(nodes) + "\n")
     with open(edg, "w") as f:
         f.write("\n".join(edges) + "\n")
-    binary = find_netconvert(netconvert)
-    cmd = [binary, "-n", nod, "-e", edg, "-o", net, "--no-internal-links", "--no-turnarounds",
-           "--offset.disable-normalization", "--junctions.limit-turn-speed", "-1", "--precision", "6",
-           "--no-warnings"]
-    try:
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    except FileNotFoundError as e:
-        raise RuntimeError(f"netconvert: binary {binary!r} not found ({e}); install eclipse-sumo "
-                           "(pip install eclipse-sumo) or pass netconvert=<path>") from e
-    if res.returncode != 0 or not os.path.exists(net):
-        raise RuntimeError(f"netconvert failed (exit code {res.returncode}) building the ring network:\n"
-                           f"{res.stderr.strip() or res.stdout.strip()}")
+    _netconvert([find_netconvert(netconvert), "-n", nod, "-e", edg, "-o", net, "--no-internal-links",
+                 "--no-turnarounds", "--offset.disable-normalization", "--junctions.limit-turn-speed", "-1",
+                 "--precision", "6", "--no-warnings"], net, "the ring network")
     return RingNetwork(net_file=net, ring_length=float(ring_length), edges=tuple(f"e{i}" for i in range(n_edges)))
 
 
@@ -146,6 +137,55 @@ def read_ring_network(net_file: str, ring_length: float) -> RingNetwork:
 
 
 @dataclass(frozen=True)
+class StraightNetwork:
+    """A generated straight road: one single-lane edge ``e0`` of ``length`` m (no junction on the way)."""
+
+    net_file: str
+    length: float
+    edges: tuple[str, ...] = ("e0",)
+
+    def locate(self, s: float) -> tuple[str, float]:
+        """(edge, lane position) of the road coordinate ``s`` (m from the start of the road)."""
+        if not 0.0 <= s <= self.length:
+            raise ValueError(f"position {s:.3f} m is off the road; allowed: [0, {self.length:.3f}] m")
+        return "e0", s
+
+
+def build_straight_network(length: float, out_dir: str, *, netconvert: str | None = None) -> StraightNetwork:
+    """Write ``road.nod.xml``/``road.edg.xml`` into ``out_dir`` and convert them to ``road.net.xml``.
+
+    One edge, so a SUMO vehicle always sees its leader (SUMO's look-ahead only limits
+    leaders on later edges). Raises ``ValueError`` for a bad length and ``RuntimeError``
+    with netconvert's own message when the conversion fails or the binary is missing.
+    """
+    if not length > 0:
+        raise ValueError(f"length={length!r} is invalid; allowed: > 0 (m)")
+    os.makedirs(out_dir, exist_ok=True)
+    nod, edg = os.path.join(out_dir, "road.nod.xml"), os.path.join(out_dir, "road.edg.xml")
+    net = os.path.join(out_dir, "road.net.xml")
+    with open(nod, "w") as f:
+        f.write(f'<nodes>\n    <node id="a" x="0" y="0"/>\n    <node id="b" x="{length:.6f}" y="0"/>\n</nodes>\n')
+    with open(edg, "w") as f:
+        f.write(f'<edges>\n    <edge id="e0" from="a" to="b" numLanes="1" speed="{LANE_SPEED}" '
+                f'length="{length:.6f}"/>\n</edges>\n')
+    _netconvert([find_netconvert(netconvert), "-n", nod, "-e", edg, "-o", net, "--no-internal-links",
+                 "--no-turnarounds", "--offset.disable-normalization", "--precision", "6", "--no-warnings"],
+                net, "the straight road")
+    return StraightNetwork(net_file=net, length=float(length))
+
+
+def _netconvert(cmd: list[str], net: str, what: str) -> None:
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    except FileNotFoundError as e:
+        raise RuntimeError(f"netconvert: binary {cmd[0]!r} not found ({e}); install eclipse-sumo "
+                           "(pip install eclipse-sumo) or pass netconvert=<path>") from e
+    if res.returncode != 0 or not os.path.exists(net):
+        raise RuntimeError(f"netconvert failed (exit code {res.returncode}) building {what}:\n"
+                           f"{res.stderr.strip() or res.stdout.strip()}")
+
+
+@dataclass(frozen=True)
 class VehicleSpec:
     """One vehicle of the routes file: its vType attributes and where it starts."""
 
@@ -155,8 +195,10 @@ class VehicleSpec:
     speed: float  # depart speed (m/s)
 
 
-def write_routes(path: str, net: RingNetwork, vehicles: list[VehicleSpec], *, laps: int) -> None:
-    """Routes file: one vType per distinct type, every vehicle on a looping route of ``laps`` laps."""
+def write_routes(path: str, net: RingNetwork | StraightNetwork, vehicles: list[VehicleSpec], *,
+                 laps: int | None) -> None:
+    """Routes file: one vType per distinct type, every vehicle on a looping route of ``laps`` laps
+    (``laps=None``: the network's edges once, e.g. the straight road)."""
     lines = ["<routes>"]
     seen = set()
     for v in vehicles:
@@ -172,7 +214,8 @@ def write_routes(path: str, net: RingNetwork, vehicles: list[VehicleSpec], *, la
         route = " ".join(net.edges[(i0 + j) % k] for j in range(k))
         lines.append(f'    <vehicle id="{v.vid}" type="{v.vtype["id"]}" depart="0" departPos="{lane_pos:.9f}" '
                      f'departSpeed="{v.speed:.9f}" departLane="0" insertionChecks="none">')
-        lines.append(f'        <route edges="{route}" repeat="{int(laps)}"/>')
+        repeat = "" if laps is None else f' repeat="{int(laps)}"'
+        lines.append(f'        <route edges="{route}"{repeat}/>')
         lines.append("    </vehicle>")
     lines.append("</routes>")
     with open(path, "w") as f:

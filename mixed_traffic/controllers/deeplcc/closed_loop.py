@@ -81,8 +81,11 @@ def fuel_rate(v: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 def run_closed_loop(controller, head_speed: torch.Tensor, cfg: PlatoonConfig, t_ini: int = 20,
                     qp_params: QPParams | None = None, adaptive_v_star=False,
-                    generator: torch.Generator | None = None, record: bool = False) -> dict:
+                    generator: torch.Generator | None = None, record: bool = False, simulator=None) -> dict:
     """Simulate ``head_speed.shape[0]`` platoons for ``head_speed.shape[1] - 1`` steps.
+
+    ``simulator``: ``None`` (the torch platoon, :func:`.platoon.step`) or a
+    :class:`mixed_traffic.envs.sumo_platoon.SumoPlatoon` (one platoon: SUMO moves the cars).
 
     Returns numpy metrics (``cost``, ``fuel``, ``velocity_error``, ``collisions``,
     ``min_gap``: ``(B,)``) and, with ``record=True``, the samples the controller
@@ -96,7 +99,12 @@ def run_closed_loop(controller, head_speed: torch.Tensor, cfg: PlatoonConfig, t_
     m, nf = cfg.m, cfg.n_followers
     ci = [i - 1 for i in cfg.cav_indices]
     adaptive = torch.as_tensor(adaptive_v_star, dtype=torch.bool).expand(B)
-    pos, vel = init_state(B, cfg, v0=float(head_speed[0, 0]))
+    if simulator is not None and B != 1:
+        raise ValueError(f"run_closed_loop: {B} platoons is invalid with a simulator; allowed: 1")
+    if simulator is None:
+        pos, vel = init_state(B, cfg, v0=float(head_speed[0, 0]))
+    else:
+        pos, vel = simulator.start(float(head_speed[0, 0]))
     vel[:, 0] = head_speed[:, 0]
     # raw histories of the window (head speed, follower speeds, CAV gaps, executed u)
     h_vh = torch.zeros(B, K + 1, dtype=DTYPE)
@@ -126,7 +134,10 @@ def run_closed_loop(controller, head_speed: torch.Tensor, cfg: PlatoonConfig, t_
                     rec[key].append(val.numpy().copy())
         else:
             u = torch.zeros(B, m, dtype=DTYPE)
-        pos, vel, executed = step(pos, vel, u, head_speed[:, k + 1], cfg, generator)
+        if simulator is None:
+            pos, vel, executed = step(pos, vel, u, head_speed[:, k + 1], cfg, generator)
+        else:
+            pos, vel, executed = simulator.step(u, head_speed[:, k + 1])
         h_u[:, k] = executed
         h_acc[:, k] = (vel[:, 1:] - h_v[:, k]) / cfg.dt
         if k >= t_ini:

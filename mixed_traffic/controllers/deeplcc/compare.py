@@ -4,8 +4,15 @@
         --rl outputs/runs/deeplcc_lppo_s0 --warmstart outputs/runs/deeplcc_warmstart_s0 \\
         --rlmpc outputs/runs/deeplcc_rlmpc_s0
 
-Scenarios of the same length run as one batched env. Controllers: ``hdv`` (all-HDV: the CAVs drive like the platoon's humans), ``qp`` (the exact
-DeeP-LCC QP on one homogeneous-OVM Hankel set, pre-collected with ``--qp-seed``), ``nnmpc``
+    python -m mixed_traffic.controllers.deeplcc.compare --out outputs/deeplcc/compare_sumo \\
+        --backend torch sumo --mismatch idm --controllers hdv qp qp_sumo nnmpc --no-compute
+
+Scenarios of the same length run as one batched env (torch) or one SUMO simulation each
+(``--backend sumo``: the platoon in SUMO, humans = SUMO's IDM with the DeeP-LCC IDM set).
+Controllers: ``hdv`` (all-HDV: the CAVs drive like the platoon's humans), ``qp`` (the exact
+DeeP-LCC QP on one homogeneous-OVM Hankel set, pre-collected with ``--qp-seed``), ``qp_sumo``
+(the same QP on a Hankel set pre-collected in SUMO, same seed), ``qp_idm`` (on a torch
+IDM-human Hankel set), ``nnmpc``
 (the cached NNMPC), and the learned ``rl`` (Lagrangian PPO from scratch), ``warmstart``
 (actor initialised from the NNMPC) and ``rlmpc`` (residual over the NNMPC) from their run
 directories. Each runs the five evaluation scenarios of the DeeP-LCC package (random ±1,
@@ -39,7 +46,10 @@ from mixed_traffic.controllers.deeplcc.closed_loop import fuel_rate
 
 SCENARIOS = {"random1": "random1", "random5": "random5", "brake": "brake", "sine": "sine5", "nedc": "nedc"}
 SECONDS = {"nedc": 330.0}
-CLASSICAL = ("hdv", "qp", "nnmpc")
+CLASSICAL = ("hdv", "qp", "nnmpc", "qp_sumo", "qp_idm")
+#: the Hankel data each QP controller is built on: (pre-collection backend, human model)
+QP_DATA = {"qp": ("torch", "ovm"), "qp_sumo": ("sumo", "idm"), "qp_idm": ("torch", "idm")}
+BACKENDS = ("torch", "sumo")
 LEARNED = ("rl", "warmstart", "rlmpc")
 S_MIN = 5.0
 
@@ -64,11 +74,17 @@ def hdv_policy(env) -> TensorDictModule:
     return TensorDictModule(HumanCAV(env), in_keys=[("traffic", "gap"), ("traffic", "speed")], out_keys=["action"])
 
 
-def qp_policy(seed: int = 12345) -> TensorDictModule:
+def qp_policy(seed: int = 12345, data: str = "qp") -> TensorDictModule:
+    """The exact QP on one Hankel set pre-collected with ``seed`` from the data source ``QP_DATA[data]``.
+
+    ``"qp"``: the homogeneous-OVM torch platoon (the deployed QP), ``"qp_sumo"``: the SUMO
+    platoon (SUMO's IDM humans), ``"qp_idm"``: the torch platoon with IDM humans.
+    """
     from mixed_traffic.controllers.deeplcc.controller import deeplcc_policy
     from mixed_traffic.controllers.deeplcc.train import deployed_solver
 
-    _, solver = deployed_solver(seed)
+    backend, hdv = QP_DATA[data]
+    _, solver = deployed_solver(seed, hdv_model=hdv, backend=backend)
     return deeplcc_policy(solver)
 
 
@@ -79,28 +95,40 @@ def groups(scenarios) -> list[tuple[str, ...]]:
 
 
 def build(controller: str, *, scenarios: tuple[str, ...], mismatch: str, episodes: int, seed: int, safety: bool,
-          runs: dict, nnmpc: str, qp_seed: int = 12345, cache: dict | None = None):
-    """``(env, policy)`` of one controller on a group of equally long scenarios, ``episodes`` rows each."""
+          runs: dict, nnmpc: str, qp_seed: int = 12345, cache: dict | None = None, backend: str = "torch"):
+    """``(env, policy)`` of one controller on a group of equally long scenarios, ``episodes`` rows each.
+
+    ``backend="sumo"``: one SUMO platoon (batch 1, one scenario; ``rollout_metrics`` rolls
+    its ``episodes`` one after the other), humans = SUMO's IDM (``mismatch`` must be ``"idm"``).
+    """
     from mixed_traffic import make_env
     from transforms import SafetyLayer
 
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: {backend!r} is invalid; allowed: {list(BACKENDS)}")
+    if backend == "sumo" and (len(scenarios) != 1 or mismatch != "idm"):
+        raise ValueError(f"backend 'sumo': scenarios={scenarios}, mismatch={mismatch!r} are invalid; allowed: one "
+                         "scenario at a time and mismatch 'idm' (SUMO's humans are IDM)")
     ov = dict(profiles=[SCENARIOS[s] for s in scenarios], profile_rows=True, randomize=False, mismatch=mismatch,
               episode_seconds=SECONDS.get(scenarios[0], 40.0))
-    rows = episodes * len(scenarios)
+    rows = episodes * len(scenarios) if backend == "torch" else 1
     cache = {} if cache is None else cache
     if controller in CLASSICAL:
-        base = make_env("platoon", batch_size=rows, seed=seed, **ov)
-        env = TransformedEnv(base, Compose(SafetyLayer(s_min=S_MIN, s_max=None)) if safety else Compose())
-        if controller == "hdv":
-            return env, hdv_policy(env)
-        if controller == "qp":
-            if "qp" not in cache:
-                cache["qp"] = qp_policy(qp_seed)
-            cache["qp"].module.reset()
-            return env, cache["qp"]
-        from mixed_traffic.controllers.deeplcc.rlmpc import nnmpc_base
+        policy = None
+        if controller in QP_DATA:  # pre-collect before the env exists: one SUMO per process
+            if controller not in cache:
+                cache[controller] = qp_policy(qp_seed, controller)
+            cache[controller].module.reset()
+            policy = cache[controller]
+        elif controller == "nnmpc":
+            from mixed_traffic.controllers.deeplcc.rlmpc import nnmpc_base
 
-        return env, nnmpc_base(nnmpc, "--nnmpc")
+            policy = nnmpc_base(nnmpc, "--nnmpc")
+        base = make_env("platoon", backend=backend, batch_size=rows, seed=seed, **ov)
+        env = TransformedEnv(base, Compose(SafetyLayer(s_min=S_MIN, s_max=None)) if safety else Compose())
+        return env, (hdv_policy(env) if controller == "hdv" else policy)
+    from omegaconf import open_dict
+
     from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
     from mixed_traffic.training.builders import make_transformed_env
 
@@ -108,17 +136,27 @@ def build(controller: str, *, scenarios: tuple[str, ...], mismatch: str, episode
         raise ValueError(f"--{controller}: no run directory given; allowed: a run directory or final.pt")
     cfg, state = cache.get(controller) or checkpoint_config(runs[controller])
     cache[controller] = (cfg, state)
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.env.backend = backend
+        if backend == "sumo" and cfg.env.get("overrides"):
+            cfg.env.overrides.pop("accel_noise", None)
     without = () if safety else ("safety_layer", "intervention_cost")
     env = make_transformed_env(cfg, num_envs=rows, seed=seed, without=without, **ov)
     return env, policy_factory_from_state(cfg, state)(env)
 
 
-def rollout_metrics(env, policy, scenarios: tuple[str, ...]) -> dict:
-    """Roll one episode per row; metrics per scenario, averaged over its rows (see the module docstring)."""
+def rollout_metrics(env, policy, scenarios: tuple[str, ...], episodes: int | None = None) -> dict:
+    """Roll one episode per row; metrics per scenario, averaged over its rows (see the module docstring).
+
+    A one-row env (SUMO) with ``episodes`` > 1 rolls its episodes one after the other
+    (each rollout resets: the next head-profile draw of the env's generator).
+    """
     base = env.base_env
     steps = base.scenario.max_steps
+    runs = episodes if (episodes and base.batch_size[0] == 1 and len(scenarios) == 1) else 1
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.rollout(steps, policy, break_when_any_done=False)
+        td = torch.cat([env.rollout(steps, policy, break_when_any_done=False) for _ in range(runs)], 0)
     nxt = td["next"]
     done = nxt["done"][..., 0]
     valid = (done.long().cumsum(-1) - done.long()) == 0  # up to and including the first done
@@ -217,21 +255,35 @@ def per_step_compute(controller: str, runs: dict, nnmpc: str, repeats: int = 300
 
 
 def compare(controllers, *, runs: dict, nnmpc: str, mismatches=("none", "idm"), scenarios=tuple(SCENARIOS),
-            episodes: int = 3, seed: int = 10_000, safety=(True, False), compute: bool = True, log=print) -> dict:
+            episodes: int = 3, seed: int = 10_000, safety=(True, False), compute: bool = True, log=print,
+            backends=("torch",)) -> dict:
+    """Every controller on every scenario; ``results[key][controller][scenario]``.
+
+    Keys: ``"{mismatch}/{layer|no_layer}"`` for the torch platoon and
+    ``"sumo/idm/{layer|no_layer}"`` for the SUMO platoon (SUMO's IDM humans; every
+    scenario in its own SUMO simulation, seeded with ``seed`` + its index, episodes one
+    after the other).
+    """
     cache: dict = {}
     res: dict = {"seed": seed, "episodes": episodes, "runs": {k: str(v) for k, v in runs.items() if v},
                  "nnmpc": nnmpc, "results": {}, "compute_s": {}}
-    for mm in mismatches:
+    plan = [("torch", mm) for mm in mismatches if "torch" in backends]
+    plan += [("sumo", "idm")] if "sumo" in backends else []
+    for backend, mm in plan:
+        grps = groups(scenarios) if backend == "torch" else [(sc,) for sc in scenarios]
         for sf in safety:
-            key = f"{mm}/{'layer' if sf else 'no_layer'}"
+            key = f"{'sumo/' if backend == 'sumo' else ''}{mm}/{'layer' if sf else 'no_layer'}"
             res["results"][key] = {}
             for c in controllers:
                 res["results"][key][c] = {}
-                for gi, grp in enumerate(groups(scenarios)):
+                for gi, grp in enumerate(grps):
                     t0 = time.perf_counter()
                     env, pol = build(c, scenarios=grp, mismatch=mm, episodes=episodes, seed=seed + gi, safety=sf,
-                                     runs=runs, nnmpc=nnmpc, cache=cache)
-                    ms = rollout_metrics(env, pol, grp)
+                                     runs=runs, nnmpc=nnmpc, cache=cache, backend=backend)
+                    try:
+                        ms = rollout_metrics(env, pol, grp, episodes)
+                    finally:
+                        env.close()
                     res["results"][key][c].update(ms)
                     if log:
                         for sc, m in ms.items():
@@ -255,6 +307,10 @@ def summary(res: dict) -> dict:
             s["rlmpc_vs_nnmpc_mean_pct"] = float(np.mean(list(d.values())))
         if "qp" in table and "hdv" in table and "brake" in table["qp"]:
             s["qp_fuel_saving_brake_pct"] = 100.0 * (1.0 - table["qp"]["brake"]["fuel"] / table["hdv"]["brake"]["fuel"])
+        if "qp_sumo" in table and "qp" in table:
+            d = {sc: 100.0 * (table["qp_sumo"][sc]["cost"] / table["qp"][sc]["cost"] - 1.0) for sc in table["qp"]}
+            s["qp_sumo_vs_qp_pct"] = d
+            s["qp_sumo_vs_qp_mean_pct"] = float(np.mean(list(d.values())))
         s["collisions"] = {c: sum(m["collisions"] for m in t.values()) for c, t in table.items()}
         out[key] = s
     return out
@@ -292,16 +348,20 @@ def main(argv=None) -> dict:
     ap.add_argument("--layer", default="on", choices=["on", "off", "both"],
                     help="behind the safety layer (on), without it (off) or both")
     ap.add_argument("--no-compute", action="store_true", help="skip the per-step compute timing")
+    ap.add_argument("--backend", nargs="*", default=["torch"], choices=list(BACKENDS),
+                    help="torch (the --mismatch settings) and/or sumo (SUMO's IDM humans)")
     a = ap.parse_args(argv)
     from mixed_traffic.controllers.deeplcc.rlmpc import DEFAULT_NNMPC
 
     if a.episodes < 1:
         ap.error(f"--episodes: {a.episodes} is invalid; allowed: >= 1")
     runs = {c: getattr(a, c) for c in LEARNED}
-    controllers = a.controllers or [*CLASSICAL, *[c for c in LEARNED if runs[c]]]
+    controllers = a.controllers or ["hdv", "qp", "nnmpc", *(["qp_sumo"] if "sumo" in a.backend else []),
+                                    *[c for c in LEARNED if runs[c]]]
     res = compare(controllers, runs=runs, nnmpc=a.nnmpc or DEFAULT_NNMPC, mismatches=a.mismatch,
                   scenarios=a.scenarios, episodes=a.episodes, seed=a.seed,
-                  safety={"on": (True,), "off": (False,), "both": (True, False)}[a.layer], compute=not a.no_compute)
+                  safety={"on": (True,), "off": (False,), "both": (True, False)}[a.layer], compute=not a.no_compute,
+                  backends=tuple(a.backend))
     res["summary"] = summary(res)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """(state, QP solution) dataset of DeeP-LCC closed loops: generation, atomic .npz write, validating load.
 
 Each episode pre-collects its own Hankel data (:mod:`.precollect`), then runs
-the platoon in closed loop under the exact QP (:class:`.qp.DeepLCCSolver`) on a
+the platoon (torch, or SUMO with ``backend="sumo"``) in closed loop under the exact QP (:class:`.qp.DeepLCCSolver`) on a
 head-speed scenario from the mix, recording every controlled step's
 ``(uini, yini, eini) -> u_opt``. Episodes take scenarios in contiguous blocks.
 
@@ -78,6 +78,7 @@ class DatasetConfig:
     seed: int = 0
     workers: int = 2
     brake_start: tuple = (1.0, 10.0)  # brake episodes start braking at U[lo, hi] s
+    backend: str = "torch"  # "sumo": pre-collection and closed loop in SUMO (hdv_model idm, accel_noise 0)
 
     def validate(self) -> DatasetConfig:
         def bad(name, allowed):
@@ -105,6 +106,12 @@ class DatasetConfig:
             bad("hdv_model", "'ovm' or 'idm'")
         if not 0 <= self.accel_noise:
             bad("accel_noise", ">= 0")
+        if self.backend not in ("torch", "sumo"):
+            bad("backend", "'torch' or 'sumo'")
+        if self.backend == "sumo" and self.hdv_model != "idm":
+            bad("hdv_model", "'idm' with backend=sumo (SUMO's IDM; OVM is not a SUMO car-following model)")
+        if self.backend == "sumo" and self.accel_noise != 0:
+            bad("accel_noise", "0 with backend=sumo (SUMO's IDM has no acceleration noise)")
         if not (isinstance(self.workers, int) and self.workers >= 1):
             bad("workers", "an integer >= 1")
         mix = dict(self.mix)
@@ -155,18 +162,28 @@ def generate_episode(cfg: DatasetConfig, episode: int) -> dict:
     gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + episode)
     rng = np.random.default_rng([cfg.seed, episode])
     pc = cfg.platoon()
-    [h] = precollect(pc, T=cfg.T, t_ini=cfg.t_ini, n=cfg.n, generator=gen)
-    solver = DeepLCCSolver(h, cfg.qp_params())
-    kind = cfg.episode_kinds()[episode]
-    spec = episode_scenario(kind, cfg, rng)
-    v = spec.head_speed(cfg.dt, 1, gen)
+    sim = None
+    if cfg.backend == "sumo":
+        from mixed_traffic.envs.sumo_platoon import SumoPlatoon
 
-    def controller(uini, yini, eini):
-        # the QP sees exactly the float32 values that are stored
-        u32, y32, e32 = (x.astype(np.float32).astype(np.float64) for x in (uini, yini, eini))
-        return np.stack([solver.solve(u32[b], y32[b], e32[b]).u for b in range(uini.shape[0])])
+        sim = SumoPlatoon(pc, seconds=max(cfg.T * cfg.dt, cfg.episode_seconds))
+    try:
+        [h] = precollect(pc, T=cfg.T, t_ini=cfg.t_ini, n=cfg.n, generator=gen, simulator=sim)
+        solver = DeepLCCSolver(h, cfg.qp_params())
+        kind = cfg.episode_kinds()[episode]
+        spec = episode_scenario(kind, cfg, rng)
+        v = spec.head_speed(cfg.dt, 1, gen)
 
-    out = run_closed_loop(controller, v, pc, cfg.t_ini, cfg.qp_params(), spec.adaptive_v_star, gen, record=True)
+        def controller(uini, yini, eini):
+            # the QP sees exactly the float32 values that are stored
+            u32, y32, e32 = (x.astype(np.float32).astype(np.float64) for x in (uini, yini, eini))
+            return np.stack([solver.solve(u32[b], y32[b], e32[b]).u for b in range(uini.shape[0])])
+
+        out = run_closed_loop(controller, v, pc, cfg.t_ini, cfg.qp_params(), spec.adaptive_v_star, gen, record=True,
+                              simulator=sim)
+    finally:
+        if sim is not None:
+            sim.close()
     return {
         "uini": out["uini"][0].astype(np.float32), "yini": out["yini"][0].astype(np.float32),
         "eini": out["eini"][0].astype(np.float32), "u_opt": out["u"][0].astype(np.float64),

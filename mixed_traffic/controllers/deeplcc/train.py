@@ -39,10 +39,28 @@ from mixed_traffic.controllers.deeplcc.precollect import precollect
 from mixed_traffic.controllers.deeplcc.qp import DeepLCCSolver, QPParams
 
 
-def deployed_solver(seed: int, preset: str = "dataset", hdv_model: str = "ovm", T: int = 2000) -> tuple[PlatoonConfig, DeepLCCSolver]:
-    """The QP controller the surrogate imitates: one Hankel set pre-collected with ``seed``."""
-    cfg = PlatoonConfig(hdv_model=hdv_model)
-    [h] = precollect(cfg, T=T, generator=torch.Generator().manual_seed(seed))
+def deployed_solver(seed: int, preset: str = "dataset", hdv_model: str = "ovm", T: int = 2000,
+                    backend: str = "torch") -> tuple[PlatoonConfig, DeepLCCSolver]:
+    """The QP controller the surrogate imitates: one Hankel set pre-collected with ``seed``.
+
+    ``backend="sumo"`` pre-collects it in SUMO (:class:`~mixed_traffic.envs.sumo_platoon.SumoPlatoon`,
+    IDM humans without noise; ``hdv_model`` must then be ``"idm"``); SUMO is closed afterwards.
+    """
+    if backend not in ("torch", "sumo"):
+        raise ValueError(f"backend: {backend!r} is invalid; allowed: 'torch', 'sumo'")
+    gen = torch.Generator().manual_seed(seed)
+    if backend == "torch":
+        cfg = PlatoonConfig(hdv_model=hdv_model)
+        [h] = precollect(cfg, T=T, generator=gen)
+    else:
+        from mixed_traffic.envs.sumo_platoon import SumoPlatoon
+
+        cfg = PlatoonConfig(hdv_model=hdv_model, accel_noise=0.0)
+        sim = SumoPlatoon(cfg, seconds=T * cfg.dt)
+        try:
+            [h] = precollect(cfg, T=T, generator=gen, simulator=sim)
+        finally:
+            sim.close()
     return cfg, DeepLCCSolver(h, QPParams.preset(preset))
 
 
