@@ -18,7 +18,7 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
     Args:
         scenario: ``"ring"``, ``"deeplcc"``, ``"ring_wave"``, ``"intersection"`` or ``"platoon"``
             (the DeeP-LCC platoon on the physics of the DeeP-LCC closed loop, :mod:`.platoon`).
-        backend: ``"torch"`` (batched pure-torch simulator) or ``"sumo"`` (ring and platoon,
+        backend: ``"torch"`` (batched pure-torch simulator) or ``"sumo"`` (ring, ring_wave and platoon,
             one libsumo simulation per process; batch through ``ParallelEnv``).
         batch_size: number of independent scenarios stepped together (torch backend).
         seed: seeds the environment's own generator (profiles, initial states).
@@ -53,8 +53,9 @@ def make_env(scenario: str, *, backend: str = "torch", batch_size: int = 1, seed
 
             env = PlatoonEnv(batch_size=batch_size, device=device, **overrides)
     elif backend == "sumo":
-        if scenario != "ring":
-            raise ValueError(f"backend 'sumo' supports scenarios 'ring' and 'platoon' only, got {scenario!r}")
+        if scenario not in ("ring", "ring_wave"):
+            raise ValueError(f"backend 'sumo' supports scenarios 'ring', 'ring_wave' and 'platoon' only, "
+                             f"got {scenario!r}")
         if batch_size != 1:
             raise ValueError("batch_size: the SUMO backend runs one simulation per process (batch_size=1); "
                              "batch it with torchrl.envs.ParallelEnv")

@@ -9,10 +9,17 @@ unchanged on either backend. What differs is who moves the cars: SUMO does.
   netconvert (:mod:`mixed_traffic.envs.sumo_net`); routes loop for the whole episode.
 - Human drivers: SUMO's IDM with the scenario's parameters (``v0`` = maxSpeed,
   ``T`` = tau, ``a`` = accel, ``b`` = decel, ``s0`` = minGap, ``delta``,
-  ``|a_min|`` = emergencyDecel), speedDev 0, ``sigma`` settable.
-- Head: ``setSpeed`` to the profile's speed every step; SUMO bounds it by the head
-  vType's accel/decel (= ``head_accel_bounds``) and its IDM safe speed, the same rule
-  as the torch backend.
+  ``|a_min|`` = emergencyDecel), speedDev 0, ``sigma`` settable (SUMO's IDM ignores it).
+  With ``accel_noise > 0`` every human's own SUMO car-following command is read each
+  step (``vehicle.getFollowSpeed``, the IDM step SUMO would take), the scenario's
+  saturation and ``N(0, accel_noise)`` are added as in the torch backend (the same draws
+  from the env's generator) and SUMO executes the result (``setSpeed``, speed mode 0):
+  this is how Flow puts its ``accel_noise`` on SUMO's humans.
+- Head (``head=True``): ``setSpeed`` to the profile's speed every step; SUMO bounds it by
+  the head vType's accel/decel (= ``head_accel_bounds``) and its IDM safe speed, the same
+  rule as the torch backend. ``head=False`` (``ring_wave``): no scripted vehicle.
+- ``ring_length_range``: the ring length is drawn per episode (as in the torch backend,
+  from the same generator) and a network of that length is built at each reset.
 - CAVs: the action is executed as ``setSpeed(max(0, v + a dt))``. ``sumo_safety=False``
   (speed mode 0, default) executes it exactly, as the torch backend does;
   ``sumo_safety=True`` (speed mode 95) lets SUMO cap it at its Krauss safe speed.
@@ -56,8 +63,8 @@ from mixed_traffic.envs.sumo_net import (
     read_ring_network,
     write_routes,
 )
-from mixed_traffic.envs.traffic import head_gaps, make_specs, observe, stage_terms
-from mixed_traffic.physics import IDMParams, leader_gaps
+from mixed_traffic.envs.traffic import head_gaps, initial_positions, make_specs, observe, stage_terms
+from mixed_traffic.physics import IDMParams, leader_gaps, saturate_accel
 from mixed_traffic.scenarios import TrafficScenario, get_scenario
 
 Tensor = torch.Tensor
@@ -137,13 +144,15 @@ class SumoRingEnv(EnvBase):
     """The ring scenario simulated by SUMO (libsumo), batch size ``[1]``.
 
     Args:
-        scenario: ``"ring"`` or a :class:`TrafficScenario` with ``road="ring"``,
-            ``hdv_model="idm"`` and ``integration`` ``"euler"`` or ``"ballistic"``.
+        scenario: ``"ring"``, ``"ring_wave"`` or a :class:`TrafficScenario` with ``road="ring"``,
+            ``hdv_model="idm"`` and ``integration`` ``"euler"`` or ``"ballistic"`` (with or
+            without a head, fixed or per-episode ring length, with or without ``accel_noise``).
         device: torch device of the emitted tensors.
         sumo_safety: ``False`` (speed mode 0): the CAV action executes exactly and only
             a safety layer guards it; ``True`` (speed mode 95): SUMO caps it at its
             safe speed and accel/decel bounds.
-        sigma: SUMO's driver imperfection for the human drivers (0 = deterministic).
+        sigma: SUMO's driver imperfection for the human drivers (SUMO's IDM ignores it; human
+            noise is ``accel_noise``).
         net_file: an existing ring network (from :func:`~mixed_traffic.envs.sumo_net.build_ring_network`)
             instead of generating one.
         run_dir: folder for the generated files (default: a temporary folder removed on close).
@@ -195,7 +204,14 @@ class SumoRingEnv(EnvBase):
         self._ids = [f"v{i}" for i in range(n)]
         self._cav = list(sc.cav_indices)
         self._cav_ids = [self._ids[i] for i in self._cav]
+        self._hdv_idx = list(sc.hdv_indices)
         self._window = max(1, int(round(sc.v_eq_window / sc.dt)))
+        self._cav_window = max(1, int(round(sc.cav_speed_window / sc.dt)))
+        self._netconvert = netconvert
+        self._user_net = net_file is not None
+        self.ring_length = float(sc.ring_length)
+        self.init_pos = initial_positions(sc, torch.zeros(1, dtype=torch.long), torch.Generator().manual_seed(0))[0][0]
+        self.init_pos = self.init_pos.double().numpy()
         self._hdv_base = sc.hdv_defaults()
         self.profile_params = self.profile.sample(1, self.rng)
         self.hdv_params = {f.name: np.full(n, float(getattr(self._hdv_base, f.name)))
@@ -214,6 +230,9 @@ class SumoRingEnv(EnvBase):
             if net_file is None:
                 self.net: RingNetwork = build_ring_network(sc.ring_length, run_dir, netconvert=netconvert)
             else:
+                if sc.ring_length_range is not None:
+                    raise ValueError("SUMO backend: net_file is a ring of one length; allowed with "
+                                     "ring_length_range=None only")
                 self.net = read_ring_network(net_file, sc.ring_length)
             self._offsets = self.net.edge_offsets()
             self._route_file = os.path.join(run_dir, "ring.rou.xml")
@@ -237,12 +256,6 @@ class SumoRingEnv(EnvBase):
             bad("hdv_model", sc.hdv_model, "'idm' (SUMO's IDM)")
         if sc.integration not in ("euler", "ballistic"):
             bad("integration", sc.integration, "'euler' (SUMO's default) or 'ballistic'")
-        if not sc.head:
-            bad("head", sc.head, "True (the ring without a head, e.g. 'ring_wave', runs on the torch backend)")
-        if sc.ring_length_range is not None:
-            bad("ring_length_range", sc.ring_length_range, "None (one fixed ring length per SUMO network)")
-        if sc.accel_noise:
-            bad("accel_noise", sc.accel_noise, "0")
         if sc.init_spacing_range is not None:
             bad("init_spacing_range", sc.init_spacing_range, "None (use init_spacing)")
         if sc.init_spacing_rows is not None:
@@ -307,11 +320,10 @@ class SumoRingEnv(EnvBase):
                     tau=idm.T, minGap=idm.s0, delta=idm.delta, stepping=sc.dt, maxSpeed=idm.v0, **common)
         cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, 9.0), sigma=0,
                    tau=1.0, minGap=2.5, maxSpeed=LANE_SPEED, **common)
-        spacing = sc.initial_spacing() + sc.vehicle_length
         out = []
         for i, vid in enumerate(self._ids):
-            start = self._s0 - spacing * i
-            if i == 0:
+            start = self._s0 + float(self.init_pos[i])
+            if i == 0 and sc.head:
                 vt = head
             elif i in self._cav:
                 vt = cav
@@ -330,7 +342,7 @@ class SumoRingEnv(EnvBase):
         if sc.v_init > v0_min:
             raise ValueError(f"SUMO backend: v_init={sc.v_init} is above the human drivers' v0 ({v0_min:.3f}); "
                              "SUMO never runs a vehicle above its maxSpeed (= v0); allowed: v_init <= v0")
-        laps = int(np.ceil(sc.episode_seconds * 60.0 / sc.ring_length)) + 2
+        laps = int(np.ceil(sc.episode_seconds * 60.0 / self.ring_length)) + 2
         write_routes(self._route_file, self.net, self._vehicle_specs(), laps=laps)
         ls = _libsumo()
         self._acquire()
@@ -353,19 +365,57 @@ class SumoRingEnv(EnvBase):
             mode = SPEED_MODE_SAFE if self.sumo_safety else SPEED_MODE_RAW
             for vid in self._cav_ids:
                 ls.vehicle.setSpeedMode(vid, mode)
-            ls.vehicle.setSpeedMode(self._ids[0], SPEED_MODE_HEAD)
+            if sc.head:
+                ls.vehicle.setSpeedMode(self._ids[0], SPEED_MODE_HEAD)
+            if sc.accel_noise > 0:  # the humans' noisy command is executed as given (see _human_speeds)
+                for i in sc.hdv_indices:
+                    ls.vehicle.setSpeedMode(self._ids[i], SPEED_MODE_RAW)
             self._read_state()
         except BaseException:
             self._close_sumo()
             raise
         self.acc = np.zeros(sc.n_vehicles)
         self.step_count = 0
-        self._head_hist = deque([float(self.vel[0])], maxlen=self._window)
+        self._head_hist = deque([self._tracked_speed()], maxlen=self._window)
+        self._cav_hist = deque([self.vel[self._cav].copy()], maxlen=self._cav_window)
+
+    def _tracked_speed(self) -> float:
+        """The speed averaged into ``v_eq``: the head's, or the ring's mean without a head (as in torch)."""
+        return float(self.vel[0]) if self.scenario.head else float(np.mean(self.vel))
+
+    def _human_speeds(self, gap: np.ndarray) -> np.ndarray:
+        """Next speeds of the humans: their own SUMO car-following step plus the scenario's noise.
+
+        ``vehicle.getFollowSpeed`` returns the speed SUMO's IDM of that vehicle would
+        drive next (its gap argument excludes minGap, as inside SUMO); the acceleration it
+        implies is saturated and perturbed exactly as the torch backend's humans
+        (``saturate_accel``, then ``+ accel_noise N(0, 1)`` from the env's generator,
+        clipped to ``[a_min, a_max]``).
+        """
+        sc = self.scenario
+        ls = _libsumo()
+        hdv = self._hdv_idx
+        v = self.vel
+        lead = [(i - 1) % sc.n_vehicles for i in hdv]
+        s0 = self.hdv_params["s0"][hdv]
+        v_next = np.array([ls.vehicle.getFollowSpeed(self._ids[i], float(v[i]), float(gap[i] - s0[k]),
+                                                     float(v[lead[k]]), float(self.hdv_params["b"][lead[k]]),
+                                                     self._ids[lead[k]])
+                           for k, i in enumerate(hdv)])
+        a_min = self.hdv_params["a_min"][hdv]
+        a_max = self.hdv_params["a_max"][hdv]
+        acc = torch.from_numpy((v_next - v[hdv]) / sc.dt)
+        acc = saturate_accel(acc, torch.from_numpy(gap[hdv]), torch.from_numpy(v[hdv]),
+                             torch.from_numpy(v[lead]), a_min=torch.from_numpy(a_min),
+                             a_max=torch.from_numpy(a_max)).numpy()
+        noise = torch.randn(1, sc.n_vehicles, generator=self.rng)[0].double().numpy()
+        acc = np.clip(acc + sc.accel_noise * noise[hdv], a_min, a_max)
+        return np.maximum(0.0, v[hdv] + acc * sc.dt)
 
     def _read_state(self) -> None:
         ls = _libsumo()
         v = ls.vehicle
-        L = self.net.ring_length
+        L = self.ring_length
         s = np.array([self._offsets[v.getRoadID(i)] + v.getLanePosition(i) for i in self._ids])
         self.pos = np.remainder(s - self._s0, L)
         self.vel = np.array([v.getSpeed(i) for i in self._ids])
@@ -373,7 +423,7 @@ class SumoRingEnv(EnvBase):
     # ------------------------------------------------------------------ outputs
     def _gaps(self) -> np.ndarray:
         sc = self.scenario
-        return leader_gaps(torch.from_numpy(self.pos), sc.vehicle_length, sc.ring_length).numpy()
+        return leader_gaps(torch.from_numpy(self.pos), sc.vehicle_length, self.ring_length).numpy()
 
     def _output(self, gap: np.ndarray) -> dict:
         sc = self.scenario
@@ -385,18 +435,23 @@ class SumoRingEnv(EnvBase):
         v_eq = torch.tensor([[float(np.mean(self._head_hist))]], **f)
         ci = self._cav
         cav_acc = acc[:, ci]
+        L = torch.tensor([[self.ring_length]], **f)
         j, cost = stage_terms(sc, vel, g, cav_acc, v_eq)
+        cav = {"gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, [(i - 1) % sc.n_vehicles for i in ci]],
+               "accel": cav_acc}
+        speed_avg = None
+        if sc.head:
+            cav["head_gap"] = head_gaps(sc, pos, L)
+            cav["head_speed"] = vel[:, :1].expand(-1, len(ci)).clone()
+        else:
+            speed_avg = cav["speed_avg"] = torch.as_tensor(np.mean(self._cav_hist, axis=0), **f).unsqueeze(0)
         out = {
-            "observation": observe(sc, pos, vel, g, cav_acc, v_eq),
-            "cav": {
-                "gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, [i - 1 for i in ci]],
-                "head_gap": head_gaps(sc, pos), "head_speed": vel[:, :1].expand(-1, len(ci)).clone(),
-                "accel": cav_acc,
-            },
+            "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg),
+            "cav": cav,
             "traffic": {
                 "pos": pos, "speed": vel, "accel": acc, "gap": g,
                 "time": torch.tensor([[self.step_count * sc.dt]], **f), "v_eq": v_eq, "J": j,
-                "ring_length": torch.tensor([[sc.ring_length]], **f),
+                "ring_length": L,
             },
         }
         return out, j, cost
@@ -409,6 +464,14 @@ class SumoRingEnv(EnvBase):
         sc = self.scenario
         if self._released:
             raise RuntimeError("SumoRingEnv: reset() after close(); build a new env")
+        # the torch backend's draws, in its order: ring length, wave phase, profile, human parameters
+        pos, L = initial_positions(sc, torch.zeros(1, dtype=torch.long), self.rng)
+        self.init_pos = pos[0].double().numpy()
+        L = float(L[0, 0])
+        if L != self.ring_length:
+            self.ring_length = L
+            self.net = build_ring_network(L, self.run_dir, netconvert=self._netconvert)
+            self._offsets = self.net.edge_offsets()
         self.profile_params = self.profile.sample(1, self.rng)
         if sc.hdv_param_noise > 0:
             base = {f.name: float(getattr(self._hdv_base, f.name)) for f in dataclasses.fields(self._hdv_base)}
@@ -436,9 +499,13 @@ class SumoRingEnv(EnvBase):
         ls = _libsumo()
         v_old = self.vel
         try:
-            t_next = torch.tensor([(self.step_count + 1) * sc.dt], dtype=torch.float64)
-            v_target = float(self.profile.speed(t_next, self.profile_params.double()))
-            ls.vehicle.setSpeed(self._ids[0], max(0.0, v_target))
+            if sc.head:
+                t_next = torch.tensor([(self.step_count + 1) * sc.dt], dtype=torch.float64)
+                v_target = float(self.profile.speed(t_next, self.profile_params.double()))
+                ls.vehicle.setSpeed(self._ids[0], max(0.0, v_target))
+            if sc.accel_noise > 0:
+                for i, v_next in zip(self._hdv_idx, self._human_speeds(self._gaps()), strict=True):
+                    ls.vehicle.setSpeed(self._ids[i], float(v_next))
             for k, vid in enumerate(self._cav_ids):
                 ls.vehicle.setSpeed(vid, max(0.0, float(v_old[self._cav[k]] + a[k] * sc.dt)))
             ls.simulationStep()
@@ -455,7 +522,8 @@ class SumoRingEnv(EnvBase):
         self.override_count += int(overridden.sum())
         self.override_steps += int(overridden.any())
         self.step_count += 1
-        self._head_hist.append(float(self.vel[0]))
+        self._head_hist.append(self._tracked_speed())
+        self._cav_hist.append(self.vel[self._cav].copy())
         gap = self._gaps()
         out, j, cost = self._output(gap)
         collision = bool(sumo_collision or (gap <= 0).any())

@@ -133,6 +133,49 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     return torch.stack(feats, dim=-1).flatten(-2)
 
 
+def initial_positions(sc: TrafficScenario, rows: Tensor, rng: torch.Generator, *, device=None,
+                      dtype=torch.float32) -> tuple[Tensor, Tensor]:
+    """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of the rows ``rows`` being reset.
+
+    Centre-to-centre spacing per row: ``init_spacing_range`` (a bumper gap drawn per
+    episode) or ``init_spacing_rows`` (row ``i`` takes entry ``i % len``) when set, else
+    ``init_spacing``, else the ring's even spacing ``L / n`` (open road: the equilibrium
+    gap), which ``init_wave`` turns into one stop-and-go wave. Draws from ``rng`` in a
+    fixed order: ring length, wave phase, start gap. Both backends call it, so the same
+    seed gives the same start (ring length, wave phase) in torch and in SUMO.
+    """
+    k = int(rows.numel())
+    f = dict(dtype=dtype, device=device)
+    idx = torch.arange(sc.n_vehicles, **f)
+    lo, hi = sc.ring_lengths
+    if sc.is_ring:
+        L = lo + (hi - lo) * torch.rand(k, 1, generator=rng).to(**f) if hi > lo else torch.full((k, 1), lo, **f)
+        spacing = L / sc.n_vehicles if sc.init_spacing is None else torch.full_like(L, sc.init_spacing
+                                                                                   + sc.vehicle_length)
+    else:
+        L = torch.full((k, 1), float(sc.ring_length), **f)
+        spacing = torch.full((k, 1), sc.initial_spacing() + sc.vehicle_length, **f)
+    phi = 2 * torch.pi * torch.rand(k, 1, generator=rng).to(**f) if sc.init_wave > 0 else None
+    if sc.init_spacing_range is not None:
+        g_lo, g_hi = sc.init_spacing_range
+        if sc.is_ring:
+            g_hi = min(g_hi, sc.ring_length / sc.n_vehicles - sc.vehicle_length)
+        spacing = (g_lo + (g_hi - g_lo) * torch.rand(k, 1, generator=rng)).to(**f) + sc.vehicle_length
+        phi = None
+    elif sc.init_spacing_rows is not None:
+        gaps = torch.tensor(sc.init_spacing_rows, **f)
+        spacing = gaps[rows.to(gaps.device) % len(gaps)].unsqueeze(-1) + sc.vehicle_length
+        phi = None
+    offs = -spacing * idx
+    if phi is not None:
+        # gaps g (1 + A sin(2 pi i / n + phi)): one stop-and-go wave around the ring, random phase
+        gap = spacing - sc.vehicle_length
+        gaps = gap * (1 + sc.init_wave * torch.sin(2 * torch.pi * idx / sc.n_vehicles + phi))
+        offs = -torch.cumsum(gaps + sc.vehicle_length, dim=-1)
+        offs = offs - offs[:, :1]
+    return (torch.remainder(offs, L) if sc.is_ring else offs), L
+
+
 def check_action_finite(action: Tensor) -> None:
     """A NaN/inf action would leave its row's state NaN for the rest of the episode: refuse it."""
     finite = torch.isfinite(action)
@@ -201,45 +244,9 @@ class TrafficEnv(EnvBase):
 
     # ------------------------------------------------------------------ helpers
     def _initial_positions(self, rows: Tensor) -> tuple[Tensor, Tensor]:
-        """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of the rows being reset.
-
-        Centre-to-centre spacing per row: ``init_spacing_range`` (a bumper gap drawn per
-        episode) or ``init_spacing_rows`` (row ``i`` takes entry ``i % len``) when set, else
-        ``init_spacing``, else the ring's even spacing ``L / n`` (open road: the equilibrium
-        gap), which ``init_wave`` turns into one stop-and-go wave. Draws from the env's
-        generator in a fixed order: ring length, wave phase, start gap.
-        """
-        sc = self.scenario
-        k = int(rows.numel())
-        f = dict(dtype=torch.float32, device=self.device)
-        idx = torch.arange(sc.n_vehicles, **f)
-        lo, hi = sc.ring_lengths
-        if sc.is_ring:
-            L = lo + (hi - lo) * torch.rand(k, 1, generator=self.rng).to(**f) if hi > lo else torch.full((k, 1), lo, **f)
-            spacing = L / sc.n_vehicles if sc.init_spacing is None else torch.full_like(L, sc.init_spacing
-                                                                                       + sc.vehicle_length)
-        else:
-            L = torch.full((k, 1), float(sc.ring_length), **f)
-            spacing = torch.full((k, 1), sc.initial_spacing() + sc.vehicle_length, **f)
-        phi = 2 * torch.pi * torch.rand(k, 1, generator=self.rng).to(**f) if sc.init_wave > 0 else None
-        if sc.init_spacing_range is not None:
-            g_lo, g_hi = sc.init_spacing_range
-            if sc.is_ring:
-                g_hi = min(g_hi, sc.ring_length / sc.n_vehicles - sc.vehicle_length)
-            spacing = (g_lo + (g_hi - g_lo) * torch.rand(k, 1, generator=self.rng)).to(self.device) + sc.vehicle_length
-            phi = None
-        elif sc.init_spacing_rows is not None:
-            gaps = torch.tensor(sc.init_spacing_rows, **f)
-            spacing = gaps[rows % len(gaps)].unsqueeze(-1) + sc.vehicle_length
-            phi = None
-        offs = -spacing * idx
-        if phi is not None:
-            # gaps g (1 + A sin(2 pi i / n + phi)): one stop-and-go wave around the ring, random phase
-            gap = spacing - sc.vehicle_length
-            gaps = gap * (1 + sc.init_wave * torch.sin(2 * torch.pi * idx / sc.n_vehicles + phi))
-            offs = -torch.cumsum(gaps + sc.vehicle_length, dim=-1)
-            offs = offs - offs[:, :1]
-        return (torch.remainder(offs, L) if sc.is_ring else offs), L
+        """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of the rows being reset
+        (:func:`initial_positions`, from the env's generator)."""
+        return initial_positions(self.scenario, rows, self.rng, device=self.device)
 
     def _v_eq(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)

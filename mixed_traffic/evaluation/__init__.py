@@ -89,6 +89,7 @@ def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoin
     if checkpoint is not None:
         run_cfg, state = checkpoint_config(checkpoint)
         run_cfg.eval = cfg.eval
+        run_cfg.env.backend = cfg.env.backend  # the caller's choice: a policy trained on torch, evaluated in SUMO
         report, traces = evaluate_waves(run_cfg, policy_factory=policy_factory_from_state(run_cfg, state))
         report["acceptance"] = acceptance(report)
         label, eval_cfg = str(checkpoint), run_cfg

@@ -116,22 +116,34 @@ def _eval_cfg(cfg: DictConfig, *, safety_layer: bool) -> DictConfig:
 
 def run_controller(cfg: DictConfig, policy_factory, *, ring_length: float, episodes: int, seed: int,
                    seconds: float, warmup: float, safety_layer: bool, hard_brake: float):
-    """One controller on ``episodes`` episodes of one ring length: (metrics, rollout positions/speeds)."""
+    """One controller on ``episodes`` episodes of one ring length: (metrics, rollout positions/speeds).
+
+    Torch backend: one batched env of ``episodes`` rows seeded ``seed``. SUMO backend
+    (``cfg.env.backend=sumo``, one simulation per process): the episodes run one after
+    the other, episode ``e`` in an env seeded ``seed + e`` (the same episode as a torch env
+    with ``batch_size=1`` and that seed).
+    """
     from mixed_traffic.training.builders import make_transformed_env
 
     c = _eval_cfg(cfg, safety_layer=safety_layer)
-    env = make_transformed_env(c, num_envs=episodes, seed=seed, ring_length=float(ring_length),
-                               ring_length_range=None, episode_seconds=float(seconds))
-    sc = env.base_env.scenario
-    policy = policy_factory(env)
-    torch.manual_seed(seed)
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.rollout(sc.max_steps, policy, break_when_any_done=False)
+    kw = dict(ring_length=float(ring_length), ring_length_range=None, episode_seconds=float(seconds))
+    runs = [(episodes, seed)] if c.env.backend != "sumo" else [(1, seed + e) for e in range(episodes)]
+    tds = []
+    for num_envs, s in runs:
+        env = make_transformed_env(c, num_envs=num_envs, seed=s, **kw)
+        sc = env.base_env.scenario
+        policy = policy_factory(env)
+        torch.manual_seed(s)
+        try:
+            with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+                tds.append(env.rollout(sc.max_steps, policy, break_when_any_done=False))
+        finally:
+            env.close()
+    td = torch.cat(tds, 0) if len(tds) > 1 else tds[0]
     m = wave_metrics(td, dt=sc.dt, warmup=warmup, hard_brake=hard_brake, cav_indices=sc.cav_indices)
     trace = {"time": td["next", "traffic", "time"][0, :, 0].clone(), "pos": td["next", "traffic", "pos"][0].clone(),
              "speed": td["next", "traffic", "speed"][0].clone(), "ring_length": float(ring_length),
              "cav_indices": list(sc.cav_indices)}
-    env.close()
     return m, trace, sc
 
 
@@ -171,7 +183,8 @@ def evaluate_waves(cfg: DictConfig, *, policy_factory=None, controllers=None, ri
     episodes = int(episodes or w.episodes)
     seed = int(cfg.eval.seed if seed is None else seed)
     facts = controller_factories(cfg, names, policy_factory=policy_factory, seed=seed)
-    report = {"episodes": episodes, "eval_seed": seed, "episode_seconds": float(w.episode_seconds),
+    report = {"episodes": episodes, "eval_seed": seed, "backend": str(cfg.env.backend),
+              "episode_seconds": float(w.episode_seconds),
               "warmup_seconds": float(w.warmup_seconds), "hard_brake": float(w.hard_brake), "rings": {}}
     traces: dict = {}
     for L in lengths:
@@ -244,6 +257,7 @@ COLUMNS = (("mean_speed", "mean speed (m/s)", "{:.2f}"), ("speed_std", "speed st
 
 def markdown(report: dict, title: str = "Stop-and-go waves") -> str:
     lines = [f"# {title}", "",
+             f"Backend: {report.get('backend', 'torch')}. "
              f"{report['episodes']} episodes per ring length and controller (evaluation seed {report['eval_seed']}), "
              f"{report['episode_seconds']:g} s each, metrics after {report['warmup_seconds']:g} s; "
              f"hard braking: a < {report['hard_brake']:g} m/s². Mean ± std over episodes; min gap: smallest; "
