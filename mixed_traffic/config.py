@@ -403,7 +403,8 @@ class WaveEvalConfig:
     episode_seconds: float = 600.0
     warmup_seconds: float = 300.0
     hard_brake: float = -2.0  # m/s^2: a hard-braking event starts when a vehicle's acceleration drops below this
-    safety_layer: bool = True  # also run the learned policy behind transforms.safety_layer (it always runs without)
+    safety_layer: bool = True  # run the learned policy behind transforms.safety_layer
+    without_layer: bool = True  # ... and without it (raw actions executed)
 
 
 @dataclass

@@ -110,3 +110,22 @@ def test_wave_report_runs_on_the_sumo_backend(tmp_path):
     m = rep["rings"]["240"]["controllers"]["follower_stopper"]
     assert len(m["per_episode"]["mean_speed"]) == 2 and m["collisions"] == 0
     assert "Backend: sumo" in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_all_human_sumo_ring_forms_waves_that_follower_stopper_reduces():
+    from mixed_traffic.evaluation.waves import wave_metrics
+
+    out = {}
+    for name in ("human", "follower_stopper"):
+        env = make_env("ring_wave", backend="sumo", seed=1000, ring_length=230.0, episode_seconds=300.0)
+        try:
+            with torch.no_grad():
+                td = env.rollout(3000, make_damper(name, env, seed=1000), break_when_any_done=False)
+        finally:
+            env.close()
+        m = wave_metrics(td, dt=0.1, warmup=150.0)
+        assert not m["collision"].any()
+        out[name] = float(m["speed_std"].mean())
+    assert out["human"] >= 2.0
+    assert out["follower_stopper"] < out["human"]

@@ -167,7 +167,8 @@ def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: i
     if policy_factory is not None:
         if cfg.eval.wave.safety_layer:
             out["policy"] = (policy_factory, True)
-        out["policy (no layer)"] = (policy_factory, False)
+        if cfg.eval.wave.get("without_layer", True):
+            out["policy (no layer)"] = (policy_factory, False)
     return out
 
 
