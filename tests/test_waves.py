@@ -258,3 +258,18 @@ def test_all_human_ring_forms_waves_and_dampers_reduce_them():
     assert out["human"] >= 2.0
     assert out["follower_stopper"] < 0.5 * out["human"] and out["pi_saturation"] < 0.5 * out["human"]
     assert math.isfinite(out["human"])
+
+
+def test_classical_rows_drive_the_cav_themselves_not_through_the_residual():
+    """With a residual_damper in the run's chain, the classical controllers' rows still
+    execute their own command (the residual base is the learned policy's only)."""
+    from mixed_traffic.evaluation.waves import evaluate_waves
+
+    common = ["experiment=ring_wave_lppo", "eval.wave.episodes=1", "eval.wave.episode_seconds=6",
+              "eval.wave.warmup_seconds=1", "eval.wave.ring_lengths=[240]"]
+    with_res = compose(common + ["transforms.chain=[residual_damper,non_negative_reward]"])
+    without = compose(common + ["transforms.chain=[non_negative_reward]"])
+    a, _ = evaluate_waves(with_res, controllers=["human"])
+    b, _ = evaluate_waves(without, controllers=["human"])
+    ma, mb = (r["rings"]["240"]["controllers"]["human"]["per_episode"] for r in (a, b))
+    assert ma["mean_speed"] == mb["mean_speed"] and ma["speed_std"] == mb["speed_std"]

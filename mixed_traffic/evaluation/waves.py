@@ -106,16 +106,24 @@ def wave_metrics(td: TensorDictBase, *, dt: float, warmup: float, hard_brake: fl
 
 
 # ----------------------------------------------------------------------------- runs
-def _eval_cfg(cfg: DictConfig, *, safety_layer: bool) -> DictConfig:
+#: transforms that turn a policy's output into the CAV's command: a classical damper drives the CAV itself
+POLICY_ONLY = ("residual_damper", "residual_idm", "intervention_cost")
+
+
+def _eval_cfg(cfg: DictConfig, *, safety_layer: bool, policy: bool = True) -> DictConfig:
+    """The run's chain with the safety layer first (or removed); without ``policy`` also without
+    the residual base (:data:`POLICY_ONLY`), so that a classical controller's command is executed
+    as it is, not added to the learned policy's base controller."""
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-    chain = [x for x in c.transforms.chain if x != "safety_layer"]
+    drop = ("safety_layer",) + (() if policy else POLICY_ONLY)
+    chain = [x for x in c.transforms.chain if x not in drop]
     # the layer goes nearest the env (first), so that it clips what is executed
     c.transforms.chain = (["safety_layer"] + chain) if safety_layer else chain
     return c
 
 
 def run_controller(cfg: DictConfig, policy_factory, *, ring_length: float, episodes: int, seed: int,
-                   seconds: float, warmup: float, safety_layer: bool, hard_brake: float):
+                   seconds: float, warmup: float, safety_layer: bool, hard_brake: float, policy: bool = True):
     """One controller on ``episodes`` episodes of one ring length: (metrics, rollout positions/speeds).
 
     Torch backend: one batched env of ``episodes`` rows seeded ``seed``. SUMO backend
@@ -125,7 +133,7 @@ def run_controller(cfg: DictConfig, policy_factory, *, ring_length: float, episo
     """
     from mixed_traffic.training.builders import make_transformed_env
 
-    c = _eval_cfg(cfg, safety_layer=safety_layer)
+    c = _eval_cfg(cfg, safety_layer=safety_layer, policy=policy)
     kw = dict(ring_length=float(ring_length), ring_length_range=None, episode_seconds=float(seconds))
     runs = [(episodes, seed)] if c.env.backend != "sumo" else [(1, seed + e) for e in range(episodes)]
     tds = []
@@ -194,7 +202,7 @@ def evaluate_waves(cfg: DictConfig, *, policy_factory=None, controllers=None, ri
         for label, (factory, layer) in facts.items():
             m, trace, sc = run_controller(cfg, factory, ring_length=L, episodes=episodes, seed=seed,
                                           seconds=w.episode_seconds, warmup=w.warmup_seconds, safety_layer=layer,
-                                          hard_brake=w.hard_brake)
+                                          hard_brake=w.hard_brake, policy=label.startswith("policy"))
             entry["controllers"][label] = {"metrics": {k: _stats(v) for k, v in m.items()},
                                            "collisions": int(m["collision"].sum()),
                                            "per_episode": {k: [float(x) for x in v] for k, v in m.items()}}
