@@ -490,3 +490,22 @@ def test_validate_config_accepts_every_shipped_experiment():
 
     for e in known_experiments():
         validate_config(compose([f"experiment={e}"]))
+
+
+def test_a_checkpoint_saved_before_a_schema_field_existed_still_builds():
+    """Old run configs lack fields added later; they load with the field's default."""
+    from omegaconf import OmegaConf
+
+    from mixed_traffic.config import compose
+    from mixed_traffic.evaluation.policies import with_schema_defaults
+    from mixed_traffic.training.builders import make_transformed_env
+
+    stored = OmegaConf.to_container(compose(["experiment=ring_lagrangian_ppo"]), resolve=False)
+    del stored["transforms"]["intervention_cost"]["direction"]  # a field added after the run was saved
+    stored["transforms"]["safety_layer"]["s_min"] = 6.0  # stored values are kept
+    with pytest.raises(Exception, match="direction"):
+        make_transformed_env(OmegaConf.create(stored), num_envs=1, seed=0)
+    cfg = with_schema_defaults(stored)
+    assert cfg.transforms.intervention_cost.direction == "both" and cfg.transforms.safety_layer.s_min == 6.0
+    env = make_transformed_env(cfg, num_envs=1, seed=0)
+    assert env.rollout(3)["next", "cost"].shape == (1, 3, 1)

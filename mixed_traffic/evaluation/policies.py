@@ -20,7 +20,35 @@ def checkpoint_config(path: str | Path) -> tuple[DictConfig, dict]:
         total = state["config"].get("trainer", {}).get("total_frames", "?")
         print(f"note: checkpoint={str(path)!r} is a mid-run checkpoint (iteration {state['iteration']}, "
               f"{state.get('frames', '?')} of {total} frames): the run has no final.pt yet", file=sys.stderr)
-    return OmegaConf.create(state["config"]), state
+    return with_schema_defaults(state["config"]), state
+
+
+def with_schema_defaults(stored: dict) -> DictConfig:
+    """A stored run config with the fields added to the schemas since it was saved.
+
+    A checkpoint keeps the config of its run; a field that a later version added (a new
+    transform option, say) is missing from it, and the builders that read the field would
+    fail with "Missing key". Each group whose schema is known is merged onto the schema's
+    defaults, so old checkpoints load with the new field at its default (which reproduces
+    the old behaviour). A group that does not fit its schema is kept as stored.
+    """
+    from mixed_traffic import config as C
+
+    schemas = {"env": C.EnvConfig, "transforms": C.TransformsConfig, "policy": C.PolicyConfig,
+               "eval": C.EvalConfig, "logger": C.LoggerConfig}
+    loss = stored.get("loss") or {}
+    schemas["loss"] = {"ppo": C.PPOLossConfig, "lagrangian_ppo": C.PPOLossConfig, "dqn": C.DQNLossConfig,
+                       "q_learning": C.QLearningLossConfig}.get(loss.get("name"))
+    out = dict(stored)
+    for key, schema in schemas.items():
+        if schema is None or not isinstance(stored.get(key), dict):
+            continue
+        try:
+            merged = OmegaConf.merge(OmegaConf.structured(schema), stored[key])
+            out[key] = OmegaConf.to_container(merged, resolve=False)
+        except Exception:  # noqa: BLE001 - an older or foreign layout: keep it as stored
+            pass
+    return OmegaConf.create(out)
 
 
 def policy_factory_from_state(cfg: DictConfig, state: dict):
