@@ -325,3 +325,59 @@ def test_held_out_test_sets_have_200_episodes_each():
     assert sets["reactive"].reactive.all() and not sets["stop_in_zone"].reactive.any()
     train_env = IntersectionEnv(batch_size=1, agent_bank_size=64, reactive_fraction=0.25)
     assert int(train_env.bank.reactive.sum()) == 16  # reactive agents also drive in training
+
+
+def test_pause_agents_stop_once_anywhere_from_the_stop_line_to_past_the_crossing():
+    """The training style ``pause``: one stop of 0.5-10 s on the approach, inside the crossing or beyond it."""
+    from mixed_traffic.envs.intersection_agents import STOP_LINE_X
+
+    bank = sample_agent_trajectories(300, seed=5, split="train", style="pause")
+    assert set(bank.behaviour.tolist()) == {0, 1, 2} and not bank.reactive.any()
+    x = bank.true[:, :, 0]
+    stopped = bank.true[:, :, 2:].norm(dim=-1) < 1e-3
+    assert stopped.any(1).all()  # every agent pauses
+    first = stopped.float().argmax(1)
+    x_stop = x[torch.arange(len(bank)), first]
+    assert (x_stop <= STOP_LINE_X + 1e-3).all()  # from its stop line on ...
+    dur = stopped.sum(1) * 0.1
+    assert dur.min() >= 0.4 and dur.max() <= 10.2
+    # ... through the crossing: a share pause with the centre on the ego's line (west of it by < 0.45 m),
+    # others on the approach or past the line
+    on_line = (x_stop > 0.05) & (x_stop < 0.5) & (bank.behaviour < 2)
+    assert 0.03 < on_line.float().mean() < 0.3 and (x_stop > 1.0).any() and (x_stop < -0.3).any()
+
+
+def test_training_bank_is_drawn_from_the_train_split_and_shares_no_episode_with_the_test_sets():
+    from omegaconf import OmegaConf
+
+    from mixed_traffic.intersection.evaluate import test_sets
+
+    env = IntersectionEnv(batch_size=1, agent_bank_size=400, hard_start_fraction=0.3, reactive_fraction=0.25,
+                          pause_fraction=0.25, seed=0)
+    assert env.agent_split == "train" and set(env.bank.behaviour.tolist()) == {0, 1, 2}
+    assert int(env.bank.reactive.sum()) == 100
+    again = sample_agent_trajectories(100, seed=130_363, split="train", style="pause")
+    assert torch.equal(env.bank.observed[-100:], again.observed)  # the last quarter: pause agents, train stream
+    starts = env.bank.true[:, 0, :2]
+    for name, ts in test_sets(OmegaConf.create({"episodes": 80, "seed": 2024})).items():
+        d = torch.cdist(ts.true[:, 0, :2].double(), starts.double())
+        assert d.min() > 1e-6, name  # no test episode starts where a training agent does
+    with pytest.raises(ValueError, match="pause_fraction"):
+        IntersectionEnv(pause_fraction=1.5)
+    with pytest.raises(ValueError, match="pause_fraction"):
+        IntersectionEnv(hard_start_fraction=0.5, reactive_fraction=0.25, pause_fraction=0.5)
+
+
+def test_exploring_starts_put_a_share_of_resets_along_the_path_moving():
+    env = IntersectionEnv(batch_size=400, random_start_fraction=0.5, random_start_y=(-1.0, 0.5),
+                          random_start_v=(0.5, 1.5), seed=3)
+    y, v = env.reset()["observation"][:, :2].unbind(-1)
+    moved = v > 0
+    assert 0.4 < moved.float().mean() < 0.6
+    assert ((y[moved] >= -1.0) & (y[moved] <= 0.5) & (v[moved] >= 0.5) & (v[moved] <= 1.5)).all()
+    assert (y[~moved] == -1.25).all()  # the others start at rest on the start line (no start noise here)
+    assert IntersectionEnv(batch_size=4).reset()["observation"][:, 1].abs().max() == 0  # off by default
+    with pytest.raises(ValueError, match="random_start_v"):
+        IntersectionEnv(random_start_fraction=0.2, random_start_v=(0.0, 5.0))
+    with pytest.raises(ValueError, match="random_start_fraction"):
+        IntersectionEnv(random_start_fraction=-0.1)

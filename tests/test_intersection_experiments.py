@@ -109,6 +109,27 @@ def test_hard_start_bank_and_conflict_cost():
     assert anticipation_cost(going).item() > 0 and anticipation_cost(waiting).item() == 0
 
 
+def test_ego_caused_conflict_cost_never_charges_waiting_or_reversing():
+    from mixed_traffic import make_env
+    from torchrl.envs import TransformedEnv
+
+    from transforms.conflict_cost import ConflictCost, anticipation_cost, ego_caused_anticipation_cost
+
+    # a left turner sweeping past the waiting ego's start: the plain prediction charges waiting, this does not
+    sweep = torch.tensor([[-1.25, 0.0, -0.1, -0.6, -0.8, -0.6, 0.2, 0.2]])
+    assert anticipation_cost(sweep).item() > 0 and ego_caused_anticipation_cost(sweep).item() == 0
+    backing = sweep.clone()
+    backing[0, 1] = -1.0
+    assert ego_caused_anticipation_cost(backing).item() == 0  # nothing to gain by reversing away
+    # driving into an agent's predicted path is charged as before
+    going = torch.tensor([[-0.8, 2.0, 1.8, 0.5, -1.0, 0.0, 0.05, 0.05]])
+    assert ego_caused_anticipation_cost(going).item() == pytest.approx(anticipation_cost(going).item())
+    cfg = compose(["experiment=intersection_lppo"])
+    assert cfg.transforms.conflict_cost.ego_caused and cfg.env.overrides.pause_fraction > 0
+    env = TransformedEnv(make_env("intersection", batch_size=2, seed=0), ConflictCost(ego_caused=True))
+    assert "ego_caused=True" in repr(env.transform)
+
+
 def _cfg(name, tmp_path, *extra):
     return compose([f"experiment={name}", "trainer.total_frames=2048", "trainer.num_envs=32", "trainer.rollout_len=16",
                     "trainer.epochs=1", "trainer.minibatch_size=256", "trainer.progress=false", "eval.episodes=1",

@@ -4,7 +4,11 @@ The env's cost sees only the current separation from the perceived agent, so a p
 learns to brake late; and a cost-averse policy can escape every cost by reversing off the
 road. TorchRL has no transform that adds a model-based term to a cost entry, hence
 :class:`ConflictCost`. It shapes training only: the evaluation drops it, so the reported
-cost is the env's.
+cost is the env's. A constant-velocity
+prediction also charges an ego that stands still while a turning agent's extrapolated path
+sweeps past it (a left turner passes within 1 m of the ego's start); with ``ego_caused`` the
+anticipation charges only the part of the predicted conflict the ego's own motion adds, so
+waiting is never charged by it and reversing away from an approaching agent earns nothing.
 """
 
 from __future__ import annotations
@@ -34,6 +38,19 @@ def anticipation_cost(obs: torch.Tensor, *, horizon_s: float = 1.5, dt: float = 
     return mu * torch.clamp((2 * radius + sig) ** 2 - d2.min(dim=-1, keepdim=True).values, min=0.0)
 
 
+def ego_caused_anticipation_cost(obs: torch.Tensor, **kw) -> torch.Tensor:
+    """``max(0, anticipation_cost(obs) - anticipation_cost(obs with the ego held))``: the predicted
+    conflict that the ego's own velocity adds (``[..., 1]``; keywords as :func:`anticipation_cost`).
+
+    >>> o = torch.tensor([[-1.25, 0.0, -0.1, -0.6, -0.8, -0.6, 0.2, 0.2]])  # ego waits, a turner sweeps by
+    >>> bool(anticipation_cost(o) > 0), float(ego_caused_anticipation_cost(o))
+    (True, 0.0)
+    """
+    held = obs.clone()
+    held[..., 1] = 0.0
+    return (anticipation_cost(obs, **kw) - anticipation_cost(held, **kw)).clamp(min=0.0)
+
+
 class ConflictCost(Transform):
     """``cost <- cost + anticipation * anticipation_cost(obs') [not done] + out_of_bounds * [left the road]``.
 
@@ -41,6 +58,8 @@ class ConflictCost(Transform):
         anticipation: weight of :func:`anticipation_cost` on the next observation (>= 0).
         horizon_s: its prediction horizon (s).
         out_of_bounds: cost of the step that leaves the road (>= 0).
+        ego_caused: charge only the part of the predicted conflict the ego's velocity adds
+            (:func:`ego_caused_anticipation_cost`) instead of all of it.
 
     Example:
         >>> from mixed_traffic import make_env
@@ -51,21 +70,22 @@ class ConflictCost(Transform):
     """
 
     def __init__(self, anticipation: float = 1.0, horizon_s: float = 1.5, out_of_bounds: float = 150.0, *,
-                 cost_key: NestedKey = "cost"):
+                 ego_caused: bool = False, cost_key: NestedKey = "cost"):
         for name, v in (("anticipation", anticipation), ("horizon_s", horizon_s), ("out_of_bounds", out_of_bounds)):
             if not v >= 0:
                 raise ValueError(f"ConflictCost: {name}={v!r} is invalid; allowed: >= 0")
         super().__init__(in_keys=["observation", cost_key], out_keys=[cost_key])
         self.anticipation, self.horizon_s, self.out_of_bounds = float(anticipation), float(horizon_s), float(out_of_bounds)
-        self.cost_key = cost_key
+        self.cost_key, self.ego_caused = cost_key, bool(ego_caused)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         cost = next_tensordict.get(self.cost_key)
         extra = torch.zeros_like(cost)
         if self.anticipation > 0:
             alive = ~next_tensordict.get("done").reshape(cost.shape)
-            extra = extra + self.anticipation * anticipation_cost(next_tensordict.get("observation"),
-                                                                  horizon_s=self.horizon_s).to(cost) * alive
+            fn = ego_caused_anticipation_cost if self.ego_caused else anticipation_cost
+            extra = extra + self.anticipation * fn(next_tensordict.get("observation"),
+                                                   horizon_s=self.horizon_s).to(cost) * alive
         oob = next_tensordict.get("out_of_bounds", None)
         if self.out_of_bounds > 0 and oob is not None:
             extra = extra + self.out_of_bounds * oob.reshape(cost.shape).to(cost.dtype)
@@ -76,4 +96,5 @@ class ConflictCost(Transform):
         raise RuntimeError("ConflictCost shapes the cost of env steps; use it inside an env")
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(anticipation={self.anticipation}, out_of_bounds={self.out_of_bounds})"
+        return (f"{type(self).__name__}(anticipation={self.anticipation}, out_of_bounds={self.out_of_bounds}, "
+                f"ego_caused={self.ego_caused})")

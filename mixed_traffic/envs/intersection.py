@@ -20,8 +20,9 @@ Keys (all ``[B, ...]``):
 | ``("agent", "behaviour")``, ``("agent", "episode")`` | [B, 1] int64 | behaviour id, index in the trajectory bank |
 | ``step_count`` | [B, 1] int64 | steps since the row's reset |
 
-Reward: ``w_prog v dt - w_time dt - w_speed max(0, v - v_limit)^2 - w_comf a^2`` plus
-``+R_goal`` on success and ``-C_crash`` on collision. Cost:
+Reward: ``w_prog v dt - w_time dt - w_speed max(0, v - v_limit)^2 - w_comf a^2 - w_reverse max(0, -v) dt``
+plus ``+R_goal`` on success and ``-C_crash`` on collision (``w_reverse`` is 0 unless a training
+config sets it). Cost:
 ``mu max(0, (2R + sqrt(sx^2 + sy^2))^2 - d^2) + c_crash [collision]`` with ``d`` the distance
 from the ego to the *perceived* agent centre (the quantity the controller can act on).
 
@@ -110,11 +111,17 @@ class IntersectionEnv(EnvBase):
         reactive_fraction: share of the generated bank made of reactive agents, which answer
             the ego's motion (yield, hesitate, speed up or go;
             :func:`~mixed_traffic.envs.intersection_agents.reactive_step`).
+        pause_fraction: share of the generated bank made of agents that pause once for 0.5-10 s
+            anywhere from their stop line to beyond the crossing (style ``"pause"``; an
+            independent seed stream of ``agent_split``).
+        random_start_fraction, random_start_y, random_start_v: share of resets (training:
+            exploring starts) that put the ego at ``y ~ U(random_start_y)`` moving at
+            ``v ~ U(random_start_v)`` instead of at rest at ``y_start``; the agent starts as usual.
         agent_trajectories: an :class:`AgentTrajectories` bank or a path to a ``.npy`` of
             recorded rows ``[x, y, vx, vy, sx, sy]``; replaces the generative model.
         agent_sampling: ``"random"`` (each reset draws a bank index) or ``"sequential"``
             (resets take indices 0, 1, 2, ... in order; row ``b``'s first episode is ``b``).
-        w_prog, w_time, w_speed, v_limit, w_comf, r_goal, c_crash_reward, mu, c_crash: reward/cost.
+        w_prog, w_time, w_speed, v_limit, w_comf, w_reverse, r_goal, c_crash_reward, mu, c_crash: reward/cost.
 
     >>> env = IntersectionEnv(batch_size=2, start_noise=0.1)
     >>> from torchrl.envs.utils import check_env_specs
@@ -127,14 +134,17 @@ class IntersectionEnv(EnvBase):
                  start_noise: float = 0.0, agent_split: str = "train", agent_behaviours=None,
                  agent_bank_size: int = 2048, agent_style: str = "mixed", hard_start_fraction: float = 0.0,
                  hard_start_x: tuple[float, float] = (2.2, 2.6), reactive_fraction: float = 0.0,
+                 pause_fraction: float = 0.0, random_start_fraction: float = 0.0,
+                 random_start_y: tuple[float, float] = (-1.25, 0.5), random_start_v: tuple[float, float] = (0.0, 1.5),
                  agent_trajectories: AgentTrajectories | str | None = None, agent_sampling: str = "random",
                  w_prog: float = 25.0, w_time: float = 0.5, w_speed: float = 90.0, v_limit: float = 1.5,
-                 w_comf: float = 0.697, r_goal: float = 200.0, c_crash_reward: float = 150.0,
+                 w_comf: float = 0.697, w_reverse: float = 0.0, r_goal: float = 200.0, c_crash_reward: float = 150.0,
                  mu: float = 200.0, c_crash: float = 150.0, seed: int = 0):
         if not (isinstance(batch_size, int) and batch_size >= 1):
             raise ValueError(f"batch_size={batch_size!r} is invalid; allowed: an integer >= 1")
         checks = {"dt": (dt, 0.0, 1.0), "a_max": (a_max, 0.0, 50.0), "radius": (radius, 0.0, 5.0),
-                  "start_noise": (start_noise, -1e-12, 0.15 + 1e-12), "mu": (mu, -1e-12, 1e9)}
+                  "start_noise": (start_noise, -1e-12, 0.15 + 1e-12), "mu": (mu, -1e-12, 1e9),
+                  "w_reverse": (w_reverse, -1e-12, 1e9)}
         for name, (val, lo, hi) in checks.items():
             if not (isinstance(val, (int, float)) and lo < val <= hi):
                 raise ValueError(f"{name}={val!r} is invalid; allowed: ({max(lo, 0)}, {hi}]")
@@ -149,20 +159,31 @@ class IntersectionEnv(EnvBase):
             raise ValueError(f"agent_sampling={agent_sampling!r} is invalid; allowed: 'random', 'sequential'")
         if not (isinstance(agent_bank_size, int) and agent_bank_size >= 1):
             raise ValueError(f"agent_bank_size={agent_bank_size!r} is invalid; allowed: an integer >= 1")
-        for name, frac in (("hard_start_fraction", hard_start_fraction), ("reactive_fraction", reactive_fraction)):
+        fractions = {"hard_start_fraction": hard_start_fraction, "reactive_fraction": reactive_fraction,
+                     "pause_fraction": pause_fraction}
+        for name, frac in fractions.items():
             if not (isinstance(frac, (int, float)) and 0.0 <= frac <= 1.0):
                 raise ValueError(f"{name}={frac!r} is invalid; allowed: a number in [0, 1]")
-        if hard_start_fraction + reactive_fraction > 1.0:
-            raise ValueError(f"hard_start_fraction + reactive_fraction = {hard_start_fraction + reactive_fraction} "
+        if not (isinstance(random_start_fraction, (int, float)) and 0.0 <= random_start_fraction <= 1.0):
+            raise ValueError(f"random_start_fraction={random_start_fraction!r} is invalid; allowed: a number in [0, 1]")
+        for name, (lo, hi), (lo_ok, hi_ok) in (("random_start_y", random_start_y, (y_min, y_goal)),
+                                               ("random_start_v", random_start_v, (v_min, v_max))):
+            if not lo_ok <= lo <= hi < hi_ok:
+                raise ValueError(f"{name}={(lo, hi)!r} is invalid; allowed: {lo_ok} <= low <= high < {hi_ok}")
+        if sum(fractions.values()) > 1.0:
+            raise ValueError(f"hard_start_fraction + reactive_fraction + pause_fraction = {sum(fractions.values())} "
                              "is invalid; allowed: <= 1")
         super().__init__(device=device, batch_size=torch.Size([batch_size]))
         self.hard_start_fraction, self.hard_start_x = float(hard_start_fraction), tuple(hard_start_x)
-        self.reactive_fraction = float(reactive_fraction)
+        self.reactive_fraction, self.pause_fraction = float(reactive_fraction), float(pause_fraction)
+        self.random_start_fraction = float(random_start_fraction)
+        self.random_start_y, self.random_start_v = tuple(random_start_y), tuple(random_start_v)
         self.dt, self.a_max, self.y_start, self.y_goal = float(dt), float(a_max), float(y_start), float(y_goal)
         self.y_min, self.y_max, self.max_steps, self.radius = float(y_min), float(y_max), max_steps, float(radius)
         self.v_min, self.v_max, self.start_noise = float(v_min), float(v_max), float(start_noise)
         self.w_prog, self.w_time, self.w_speed, self.v_limit = w_prog, w_time, w_speed, v_limit
         self.w_comf, self.r_goal, self.c_crash_reward = w_comf, r_goal, c_crash_reward
+        self.w_reverse = float(w_reverse)
         self.mu, self.c_crash = mu, c_crash
         self.agent_split = agent_split
         self.agent_behaviours = list(agent_behaviours) if agent_behaviours is not None else (
@@ -216,13 +237,16 @@ class IntersectionEnv(EnvBase):
             n_hard = int(round(self.hard_start_fraction * self.agent_bank_size))
             n_react = int(round(self.reactive_fraction * self.agent_bank_size))
             kw = dict(split=self.agent_split, behaviours=self.agent_behaviours, horizon=self.max_steps)
-            n_plain = self.agent_bank_size - n_hard - n_react
+            n_pause = int(round(self.pause_fraction * self.agent_bank_size))
+            n_plain = max(0, self.agent_bank_size - n_hard - n_react - n_pause)
             banks = [sample_agent_trajectories(n_plain, seed=abs(seed), style=self.agent_style, **kw)] if n_plain else []
             if n_hard:
                 banks.append(sample_agent_trajectories(n_hard, seed=abs(seed) + 7919, style=self.agent_style, **kw,
                                                        params=AgentModelParams(start_x=self.hard_start_x)))
             if n_react:
                 banks.append(sample_agent_trajectories(n_react, seed=abs(seed) + 104_729, style="reactive", **kw))
+            if n_pause:
+                banks.append(sample_agent_trajectories(n_pause, seed=abs(seed) + 130_363, style="pause", **kw))
             self.bank = AgentTrajectories.cat(banks).to(self.device)
         return seed
 
@@ -287,6 +311,12 @@ class IntersectionEnv(EnvBase):
             st["idx"] = st["idx"].clone()
             st["y"][m] = self.y_start + noise
             st["v"][m] = 0.0
+            if self.random_start_fraction > 0:  # exploring starts: somewhere along the ego's path, moving
+                u = torch.rand(n, 3, generator=self._rng).to(self.device)
+                pick = u[:, 0] < self.random_start_fraction
+                (ylo, yhi), (vlo, vhi) = self.random_start_y, self.random_start_v
+                st["y"][m] = torch.where(pick[:, None], ylo + (yhi - ylo) * u[:, 1:2], st["y"][m])
+                st["v"][m] = torch.where(pick[:, None], vlo + (vhi - vlo) * u[:, 2:3], st["v"][m])
             st["t"][m] = 0
             st["idx"][m] = new_idx
             for k in ("s", "va", "timer", "hist"):
@@ -294,8 +324,7 @@ class IntersectionEnv(EnvBase):
             st["s"][m] = 0.0
             st["va"][m] = self.bank.params[new_idx.squeeze(-1), -1:]  # v0 (reactive agents)
             st["timer"][m] = 0.0
-            st["hist"][m] = torch.tensor([0.0, 0.0], device=self.device)
-            st["hist"][m, :, 0] = st["y"][m]
+            st["hist"][m] = torch.cat([st["y"][m], st["v"][m]], -1)[:, None].expand(-1, self.HIST, -1)
         f = torch.zeros(*B, 1, dtype=torch.bool, device=self.device)
         out = self._obs_td(st["y"], st["v"], st["t"], st["idx"], torch.zeros_like(st["y"]), f, f.clone(), f.clone())
         out.set("done", f.clone())
@@ -333,6 +362,7 @@ class IntersectionEnv(EnvBase):
         truncated = (t_new >= self.max_steps) & ~terminated
         reward = (self.w_prog * v_new * self.dt - self.w_time * self.dt
                   - self.w_speed * torch.clamp(v_new - self.v_limit, min=0.0) ** 2 - self.w_comf * a_exec**2
+                  - self.w_reverse * torch.clamp(-v_new, min=0.0) * self.dt
                   + self.r_goal * success.float() - self.c_crash_reward * collision.float())
         cost = self.safety_cost(y_new, obs_a) + self.c_crash * collision.float()
         self._state.update(y=y_new, v=v_new, t=t_new, idx=idx)

@@ -50,7 +50,7 @@ LANE_Y = 0.5  # westbound lane of the agent
 BOX = 1.5  # half width of the intersection box
 STOP_LINE_X = 1.9  # agent's centre stops here when yielding (box edge + radius + margin)
 EGO_LINE_X = 0.5  # the ego drives north on x = 0.5
-STYLES = ("mixed", "plain", "stop_in_zone", "reactive")
+STYLES = ("mixed", "plain", "stop_in_zone", "reactive", "pause")
 #: columns of ``AgentTrajectories.params`` (reactive agents)
 REACTIVE_PARAMS = ("x0", "v_nom", "offset", "assertiveness", "delay_steps", "go_speed", "patience", "speed_up", "v0")
 
@@ -86,6 +86,10 @@ class AgentModelParams:
     # style="stop_in_zone": the agent stops with its centre just past the ego's line for stop_wait s
     stop_x: tuple[float, float] = (0.15, 0.45)
     stop_wait: tuple[float, float] = (2.0, 8.0)
+    # style="pause" (training): one pause at an arc length drawn uniformly from the stop line to
+    # pause_past m beyond the conflict point (the approach, the crossing and its exit), for pause_wait s
+    pause_past: float = 1.2
+    pause_wait: tuple[float, float] = (0.5, 10.0)
     # style="reactive" (reactive_step): how the agent answers the ego's motion
     assertiveness: tuple[float, float] = (0.0, 1.0)  # < 0.4 yields, < 0.7 hesitates, else speeds up
     reaction_time: tuple[float, float] = (0.2, 0.8)  # s: it sees the ego this late
@@ -96,7 +100,7 @@ class AgentModelParams:
     def validate(self) -> None:
         for name in ("start_x", "speed", "speed_variation", "speed_period", "hesitate_duration", "yield_wait",
                      "zigzag_amplitude", "zigzag_wavelength", "meas_std", "dropout_len", "sigma_range", "stop_x",
-                     "stop_wait", "assertiveness", "reaction_time", "go_speed", "patience", "speed_up"):
+                     "stop_wait", "pause_wait", "assertiveness", "reaction_time", "go_speed", "patience", "speed_up"):
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
                 raise ValueError(f"{name}={(lo, hi)!r} is invalid; allowed: 0 <= low <= high, finite")
@@ -106,6 +110,8 @@ class AgentModelParams:
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0 or (name == "noise_corr" and p >= 1.0):
                 raise ValueError(f"{name}={p!r} is invalid; allowed: [0, 1]" + (" exclusive of 1" if name == "noise_corr" else ""))
+        if not (math.isfinite(self.pause_past) and self.pause_past >= 0):
+            raise ValueError(f"pause_past={self.pause_past!r} is invalid; allowed: >= 0, finite")
         for name in ("accel_max", "decel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)!r} is invalid; allowed: > 0")
@@ -239,9 +245,13 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
         horizon: number of 0.1 s steps (the trajectory has ``horizon + 1`` samples).
         style: ``"mixed"`` (hesitation/yielding at their probabilities), ``"plain"`` (neither),
             ``"stop_in_zone"`` (every agent stops with its centre just past the ego's line for
-            ``stop_wait`` s; straight and left routes only) or ``"reactive"`` (the agent answers
-            the ego's motion in the env, :func:`reactive_step`; the trajectory is its open-loop
-            reference and carries its perception error).
+            ``stop_wait`` s; straight and left routes only; a held-out test style),
+            ``"reactive"`` (the agent answers the ego's motion in the env, :func:`reactive_step`;
+            the trajectory is its open-loop reference and carries its perception error) or
+            ``"pause"`` (a training style: hesitation as in ``mixed``, and every agent pauses once
+            for ``pause_wait`` s at an arc length uniform from its stop line to ``pause_past`` m
+            beyond the point where its path meets the ego's line, so on the approach, inside the
+            crossing or on its way out; any route).
 
     >>> b = sample_agent_trajectories(6, seed=1, behaviours=["left", "right"], horizon=10)
     >>> b.behaviour.tolist()
@@ -273,7 +283,7 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
     v_per = _uniform(gen, n, p.speed_period)
     v_phase = _uniform(gen, n, (0.0, 2 * math.pi))
     mixed = style == "mixed"
-    hes = (torch.rand(n, generator=gen) < p.p_hesitate) & mixed
+    hes = (torch.rand(n, generator=gen) < p.p_hesitate) & (mixed or style == "pause")
     yld = (torch.rand(n, generator=gen) < p.p_yield) & mixed
     # hesitation starts somewhere on the approach (before reaching the box) and lasts a while
     hes_t0 = _uniform(gen, n, (0.0, 1.0)) * ((x0 - BOX) / v_nom)
@@ -289,6 +299,12 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
         hes = torch.zeros(n, dtype=torch.bool)
         stop_at = arc_to_x(route, _uniform(gen, n, p.stop_x), x0, offset)
         wait = _uniform(gen, n, p.stop_wait)
+    if style == "pause":  # one pause anywhere from the stop line to beyond the crossing, then on
+        yld = torch.ones(n, dtype=torch.bool)
+        s_c, _ = conflict_point(route, x0, offset)
+        lo = x0 - STOP_LINE_X
+        stop_at = lo + (s_c + p.pause_past - lo) * _uniform(gen, n, (0.0, 1.0))
+        wait = _uniform(gen, n, p.pause_wait)
     reactive = style == "reactive"
     if reactive:  # the env simulates the longitudinal motion; the reference below is plain
         hes = torch.zeros(n, dtype=torch.bool)
@@ -298,7 +314,7 @@ def sample_agent_trajectories(n: int, *, seed: int, split: str = "train", behavi
                              _uniform(gen, n, p.patience), _uniform(gen, n, p.speed_up), v0], dim=-1).float()
 
     # longitudinal simulation along the path
-    s_stop = stop_at if style == "stop_in_zone" else x0 - STOP_LINE_X  # arc length to where it stops
+    s_stop = stop_at if style in ("stop_in_zone", "pause") else x0 - STOP_LINE_X  # arc length to where it stops
     s = torch.zeros(n, dtype=torch.float64)
     v = v0.clone()
     waited = torch.zeros(n, dtype=torch.float64)

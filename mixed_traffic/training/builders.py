@@ -104,7 +104,8 @@ def _conflict_cost(tcfg, env):
     from transforms import ConflictCost
 
     c = tcfg.conflict_cost
-    return ConflictCost(anticipation=c.anticipation, horizon_s=c.horizon_s, out_of_bounds=c.out_of_bounds)
+    return ConflictCost(anticipation=c.anticipation, horizon_s=c.horizon_s, out_of_bounds=c.out_of_bounds,
+                        ego_caused=c.ego_caused)
 
 
 # name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
