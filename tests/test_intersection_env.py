@@ -127,6 +127,13 @@ def test_reward_shaping_terms():
     td = TensorDict({"action": torch.zeros(1, 1)}, batch_size=[1])
     r = env.step(td)["next", "reward"].item()
     assert r == pytest.approx(25 * 1.9 * 0.1 - 0.05 - 90 * 0.4**2, rel=1e-5)
+    # reversing: only a training config's w_reverse charges it beyond the lost progress
+    for w in (0.0, 50.0):
+        env = IntersectionEnv(batch_size=1, agent_trajectories=_static_bank(-5.0, 10.0), w_reverse=w)
+        assert _step(env, -2.0)["reward"].item() == pytest.approx(
+            25 * -0.2 * 0.1 - 0.05 - 0.697 * 4.0 - w * 0.2 * 0.1, rel=1e-5)
+    with pytest.raises(ValueError, match="w_reverse"):
+        IntersectionEnv(w_reverse=-1.0)
 
 
 def test_rows_reset_independently_and_seeding():
