@@ -58,6 +58,8 @@ class EnvConfig:
     s_min: float | None = None
     s_max: float | None = None
     hdv_param_noise: float | None = None
+    # SUMO's speed mode 95 for the CAVs on either backend (the seed's PPO / DQN / Q-learning ran with it)
+    sumo_safety: bool | None = None
     overrides: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
 
 

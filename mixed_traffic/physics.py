@@ -173,3 +173,136 @@ def idm_equilibrium_speed(gap: Tensor | float, *, v0: Num, T: Num, s0: Num, delt
         hi = torch.where(too_fast, mid, hi)
         lo = torch.where(too_fast, lo, mid)
     return 0.5 * (lo + hi)
+
+
+# ----------------------------------------------------------------------------- SUMO's speed mode 95
+NUMERICAL_EPS = 0.001  # m; SUMO's NUMERICAL_EPS (the stop-speed gap margin)
+EMERGENCY_DECEL_AMPLIFIER = 1.2  # SUMO's factor on the emergency deceleration it computes
+
+
+@dataclass(frozen=True)
+class KraussParams:
+    """The CAV's SUMO vType (``carFollowModel="Krauss"``, ``sigma=0``) that the ring's SUMO backend uses.
+
+    ``accel`` / ``decel`` are the scenario's ``cav_accel_bounds`` (``(-decel, accel)``);
+    ``emergency_decel`` is ``max(decel, 9)``.
+    """
+
+    tau: float = 1.0
+    min_gap: float = 2.5
+    emergency_decel: float = 9.0
+
+
+def sumo_brake_gap(speed: Tensor, decel: Num, dt: float) -> Tensor:
+    """Distance covered braking from ``speed`` at ``decel`` to a stop, step by step (SUMO's Euler ``brakeGap``, no headway).
+
+    With ``k = floor(speed / (decel dt))`` full braking steps the distance is
+    ``dt (k speed - decel dt k (k + 1) / 2)``.
+    """
+    red = decel * dt
+    k = torch.floor(speed / red)
+    return dt * (k * speed - red * k * (k + 1.0) / 2.0)
+
+
+def sumo_safe_stop_speed(gap: Tensor, decel: Num, tau: float, dt: float) -> Tensor:
+    """Largest speed from which the vehicle stops within ``gap`` braking ``decel`` after a reaction time ``tau``.
+
+    SUMO's ``maximumSafeStopSpeedEuler``: the number ``n`` of whole braking steps that fit in
+    ``g = gap - NUMERICAL_EPS`` (distance ``h = b dt n (n - 1) / 2 + n b tau`` with ``b = decel dt``),
+    plus the speed ``(g - h) / (n dt + tau)`` that uses up the rest; 0 when ``g < 0``.
+    """
+    g = gap - NUMERICAL_EPS
+    b = decel * dt
+    s, t = dt, tau
+    n = torch.floor(0.5 - (t - 0.5 * torch.sqrt((s * s + 4.0 * (s * (2.0 * g.clamp_min(0.0) / b - t) + t * t))
+                                                .clamp_min(0.0))) / s).clamp_min(0.0)
+    h = 0.5 * n * (n - 1.0) * b * s + n * b * t
+    x = n * b + (g - h) / (n * s + t)
+    return torch.where(g < 0, torch.zeros_like(x), x)
+
+
+def sumo_emergency_decel(gap: Tensor, v: Tensor, v_leader: Tensor, leader_decel: Num, emergency_decel: Num) -> Tensor:
+    """SUMO's ``calculateEmergencyDeceleration``: the braking that still avoids the leader when it brakes at most ``leader_decel``.
+
+    ``b1 = v^2 / (2 (gap + v_leader^2 / (2 leader_decel)))`` if that is at most ``leader_decel``,
+    else ``b2 = (v^2 - v_leader^2) / (2 gap)``; ``emergency_decel`` when ``gap <= 0``.
+    """
+    b1 = 0.5 * v * v / (gap + 0.5 * v_leader * v_leader / leader_decel)
+    b2 = 0.5 * (v * v - v_leader * v_leader) / gap.clamp_min(1e-12)
+    out = torch.where(b1 <= leader_decel, b1, b2)
+    return torch.where(gap <= 0, torch.full_like(out, float(emergency_decel)), out)
+
+
+def sumo_safe_follow_speed(gap: Tensor, v: Tensor, v_leader: Tensor, *, decel: Num, leader_decel: Num, tau: float,
+                           emergency_decel: Num, dt: float) -> Tensor:
+    """SUMO's Krauss safe speed (``MSCFModel::maximumSafeFollowSpeed``, Euler update), ``sigma = 0``.
+
+    ``gap`` is net of the follower's ``minGap`` (SUMO's gap: leader's back minus own front
+    minus ``minGap``). The safe speed stops the follower, reacting after ``tau`` and braking
+    ``decel``, within the gap plus the leader's own braking distance at ``max(decel,
+    leader_decel)`` (:func:`sumo_safe_stop_speed`, :func:`sumo_brake_gap`). If that needs
+    harder braking than ``decel`` (and ``emergency_decel != decel``) SUMO softens it to
+    ``1.2 x`` :func:`sumo_emergency_decel`, at least ``decel``, at most the first answer's.
+    A negative gap gives ``v - emergency_decel dt``. Never below 0.
+    """
+    f = dict(dtype=v.dtype, device=v.device)
+    decel, leader_decel, emergency_decel = (torch.as_tensor(x, **f) for x in (decel, leader_decel, emergency_decel))
+    x = sumo_safe_stop_speed(gap + sumo_brake_gap(v_leader, torch.maximum(decel, leader_decel), dt), decel, tau, dt)
+    x = torch.where(gap >= 0, x, (v - emergency_decel * dt).clamp_min(0.0))
+    orig = (v - x) / dt
+    soft = EMERGENCY_DECEL_AMPLIFIER * sumo_emergency_decel(gap, v, v_leader, leader_decel, emergency_decel)
+    soft = torch.minimum(torch.maximum(soft, decel), orig)
+    harder = (orig > decel + NUMERICAL_EPS) & (decel != emergency_decel)
+    x = torch.where(harder, (v - soft * dt).clamp_min(0.0), x)
+    return x
+
+
+def sumo_speed_mode_95(accel: Tensor, gap: Tensor, v: Tensor, v_leader: Tensor, *, accel_max: Num, decel: Num,
+                       leader_decel: Num, dt: float, params: KraussParams = KraussParams()) -> tuple[Tensor, Tensor]:
+    """The acceleration SUMO executes for a ``setSpeed(max(0, v + accel dt))`` command under speed mode 95.
+
+    Args:
+        accel: commanded acceleration (m/s^2).
+        gap: bumper-to-bumper gap to the leader (m), before ``minGap``.
+        v, v_leader: the vehicle's and its leader's speed (m/s).
+        accel_max, decel: the vehicle's vType accel / decel (> 0; the scenario's ``cav_accel_bounds``).
+        leader_decel: the leader vType's ``decel`` (> 0; SUMO uses its apparent decel, = decel).
+        dt: step length (s).
+        params: the vehicle's Krauss ``tau``, ``minGap`` and ``emergencyDecel``.
+
+    SUMO's Influencer bounds the commanded speed in this order (bits 0-2 of the mode): at
+    most the Krauss safe speed (:func:`sumo_safe_follow_speed` on the gap net of
+    ``minGap``), at most ``v + accel_max dt``, at least ``max(0, v - decel dt)``. The
+    last bound wins: under speed mode 95 SUMO never brakes harder than ``decel`` (its
+    emergency braking needs bit 2 off), so a command can still end in a collision when
+    the safe speed asks for more. Computed in float64 (SUMO's precision), returned in
+    ``accel``'s dtype. Measured against libsumo 1.28 step by step: equal to 1e-13 m/s^2
+    (``benchmarks/sumo_speed_mode_agreement.py``).
+
+    Returns ``(executed_accel, overridden)``: the executed acceleration and a bool tensor,
+    True where the executed speed differs from ``max(0, v + accel dt)`` by more than
+    1e-6 m/s (the SUMO env's ``override_steps`` rule).
+
+    >>> a, over = sumo_speed_mode_95(torch.tensor([3.0, 1.0]), torch.tensor([10.0, 80.0]), torch.tensor([15.0, 15.0]),
+    ...                              torch.tensor([10.0, 15.0]), accel_max=3.0, decel=3.0, leader_decel=3.0, dt=0.1)
+    >>> over.tolist(), [round(x, 3) for x in a.tolist()]
+    ([True, False], [-3.0, 1.0])
+    """
+    for name, x in (("accel_max", accel_max), ("decel", decel), ("leader_decel", leader_decel), ("dt", dt),
+                    ("params.tau", params.tau), ("params.emergency_decel", params.emergency_decel)):
+        t = torch.as_tensor(x)
+        if not (bool(torch.isfinite(t).all()) and bool((t > 0).all())):
+            raise ValueError(f"sumo_speed_mode_95: {name}={x!r} is invalid; allowed: finite values > 0")
+    if not (math.isfinite(params.min_gap) and params.min_gap >= 0):
+        raise ValueError(f"sumo_speed_mode_95: params.min_gap={params.min_gap!r} is invalid; allowed: finite, >= 0 (m)")
+    d = dict(dtype=torch.float64)
+    a, g, v64, vl, dec, ldec, amax, emerg = (torch.as_tensor(x).to(**d) for x in (
+        accel, gap, v, v_leader, decel, leader_decel, accel_max, params.emergency_decel))
+    v_cmd = (v64 + a * dt).clamp_min(0.0)
+    v_safe = sumo_safe_follow_speed(g - params.min_gap, v64, vl, decel=dec, leader_decel=ldec, tau=params.tau,
+                                    emergency_decel=emerg, dt=dt)
+    v_next = torch.minimum(v_cmd, v_safe)  # bit 0: the safe speed
+    v_next = torch.minimum(v_next, v64 + amax * dt)  # bit 1: max acceleration
+    v_next = torch.maximum(v_next, (v64 - dec * dt).clamp_min(0.0))  # bit 2: max deceleration
+    overridden = (v_next - v_cmd).abs() > 1e-6
+    return ((v_next - v64) / dt).to(torch.as_tensor(accel).dtype), overridden

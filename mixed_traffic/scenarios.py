@@ -77,6 +77,10 @@ class TrafficScenario:
     init_wave: float = 0.0  # amplitude of a sinusoidal initial gap wave, fraction of the mean gap
     cav_speed_window: float = 38.0  # s, window of ("cav", "speed_avg") (no-head scenarios)
     reward: str = "deeplcc"  # "deeplcc" (stage cost J) or "wave" (average speed and smoothness)
+    # SUMO's speed mode 95 for the CAVs: the executed acceleration is capped by SUMO's Krauss safe
+    # speed and the accel/decel bounds (torch: mixed_traffic.physics.sumo_speed_mode_95; SUMO: the
+    # mode itself); both backends then emit ("cav", "override") and count env.override_steps
+    sumo_safety: bool = False
     # reward (DeeP-LCC cost) and constraint cost
     weight_v: float = 1.0
     weight_s: float = 0.5

@@ -166,3 +166,59 @@ def test_v_eq_is_the_rolling_mean_of_head_speed():
         lo = max(0, k + 1 - 19)
         assert v_eq[k].item() == pytest.approx(head[lo : k + 2].mean().item(), abs=1e-5), k
     assert v_eq[-1].item() == pytest.approx(10.0, abs=1e-5)
+
+
+# ----------------------------------------------------------------------------- SUMO's speed mode 95 (sumo_safety)
+CONST_HEAD = dict(profile="constant", profile_kwargs={"v": 10.0})
+
+
+def _drive(env, accel, steps):
+    td = env.reset()
+    tds = []
+    for _ in range(steps):
+        td["action"] = torch.full((env.batch_size[0], env.scenario.n_cav), accel)
+        out = env.step(td)
+        tds.append(out["next"].clone())
+        td = out["next"]
+        if bool(td["done"].any()):
+            break
+    return torch.stack(tds, 1)
+
+
+def test_sumo_safety_caps_an_always_accelerating_cav_and_counts_the_overrides():
+    # speed mode 0 (default): +3 m/s^2 into a 10 m/s head collides (step 70)
+    raw = _drive(make_env("ring", seed=0, **CONST_HEAD), 3.0, 600)
+    assert raw["collision"][0, -1].item() and raw.shape[1] == 70
+    env = make_env("ring", batch_size=2, seed=0, sumo_safety=True, **CONST_HEAD)
+    check_env_specs(env)
+    td = _drive(env, 3.0, 600)
+    assert td.shape[1] == 600 and not td["collision"].any()
+    assert td["cav", "gap"].min() > 2.5  # Krauss keeps the vType's minGap
+    over = td["cav", "override"]
+    assert over.dtype == torch.float32 and set(over.unique().tolist()) <= {0.0, 1.0}
+    # overridden exactly where the executed acceleration is below the command
+    assert torch.equal(over.bool(), td["cav", "accel"] < 3.0 - 1e-3)
+    assert env.override_steps == int(over.sum()) == env.override_count and env.override_steps > 0.9 * 1200
+    # a command below the safe speed runs unchanged
+    td = _drive(make_env("ring", seed=0, sumo_safety=True, **CONST_HEAD), -1.0, 30)
+    assert torch.allclose(td["cav", "accel"], torch.full_like(td["cav", "accel"], -1.0), atol=1e-4)
+    assert not td["cav", "override"].any()
+
+
+def test_sumo_safety_off_has_no_override_key_and_bad_integration_is_refused():
+    assert ("cav", "override") not in make_env("ring", seed=0).observation_spec.keys(True)
+    with pytest.raises(ValueError, match="integration"):
+        make_env("ring", seed=0, sumo_safety=True, integration="ballistic")
+    with pytest.raises(ValueError, match="sumo_safety"):
+        make_env("ring", seed=0, sumo_safety="yes")
+
+
+def test_sumo_safety_from_the_hydra_config():
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import make_transformed_env
+
+    for override in ("env.sumo_safety=true", "env.overrides.sumo_safety=true"):
+        cfg = compose(["experiment=ring_dqn", override, "trainer.num_envs=2"])
+        env = make_transformed_env(cfg, num_envs=2, seed=0)
+        assert env.base_env.scenario.sumo_safety
+        assert ("cav", "override") in env.rollout(3)["next"].keys(True)

@@ -96,3 +96,69 @@ def test_integrate_never_negative_speed_and_reports_executed_accel():
 def test_unknown_model_is_a_clear_error():
     with pytest.raises(ValueError, match="hdv_model"):
         car_following_accel("krauss", torch.ones(1), torch.ones(1), torch.ones(1), {})
+
+
+# ----------------------------------------------------------------------------- SUMO's speed mode 95
+from mixed_traffic.physics import (  # noqa: E402
+    KraussParams,
+    sumo_brake_gap,
+    sumo_safe_follow_speed,
+    sumo_speed_mode_95,
+)
+
+SUMO_CAV = dict(decel=3.0, leader_decel=3.0, tau=1.0, emergency_decel=9.0, dt=0.1)
+
+
+def _t(*x):
+    return torch.tensor(x, dtype=torch.float64)
+
+
+def test_sumo_safe_follow_speed_hand_computed():
+    # v = v_leader = 10 m/s, 20 m net gap: leader's step-wise brake gap 0.1 (33 * 10 - 0.3 * 33 * 34 / 2) = 16.17 m;
+    # g = 36.169 m fits n = 40 braking steps (h = 0.5 * 40 * 39 * 0.03 + 40 * 0.3 = 35.4 m);
+    # v_safe = 40 * 0.3 + (36.169 - 35.4) / (40 * 0.1 + 1) = 12.1538 m/s
+    assert sumo_brake_gap(_t(10.0), 3.0, 0.1).item() == pytest.approx(16.17, abs=1e-9)
+    v = sumo_safe_follow_speed(_t(20.0), _t(10.0), _t(10.0), **SUMO_CAV)
+    assert v.item() == pytest.approx(12.0 + 0.769 / 5.0, abs=1e-9)
+    # 0.5 m at 15 m/s behind a 15 m/s leader: beyond decel, SUMO's emergency rule:
+    # b1 = 0.5 * 15^2 / (0.5 + 15^2 / 6) = 2.9605 <= 3, softened 1.2 x: v_safe = 15 - 0.1 * 1.2 * b1
+    v = sumo_safe_follow_speed(_t(0.5), _t(15.0), _t(15.0), **SUMO_CAV)
+    assert v.item() == pytest.approx(15.0 - 0.12 * 112.5 / 38.0, abs=1e-9)
+    # a negative gap: emergency braking, never below 0
+    assert sumo_safe_follow_speed(_t(-1.0, -1.0), _t(15.0, 0.5), _t(15.0, 0.0), **SUMO_CAV).tolist() == \
+        pytest.approx([14.1, 0.0])
+
+
+def test_sumo_speed_mode_95_order_of_bounds():
+    kw = dict(accel_max=3.0, decel=3.0, leader_decel=3.0, dt=0.1)
+    # far behind: the command executes (no override), +3 and -3 alike
+    a, over = sumo_speed_mode_95(_t(3.0, -3.0, 0.0), _t(200.0, 200.0, 200.0), _t(10.0, 10.0, 10.0),
+                                 _t(10.0, 10.0, 10.0), **kw)
+    assert a.tolist() == pytest.approx([3.0, -3.0, 0.0]) and not over.any()
+    # 3 m bumper gap (0.5 m net of minGap) at 15 m/s: the safe speed asks 3.55 m/s^2, speed mode 95
+    # brakes at most decel: -3 (SUMO measured the same), overridden
+    a, over = sumo_speed_mode_95(_t(3.0), _t(3.0), _t(15.0), _t(15.0), **kw)
+    assert a.item() == pytest.approx(-3.0) and over.item()
+    # gap 20 m net at 10 m/s: v_safe 12.15 m/s caps +3 (v + 0.3) only when above it: not here
+    a, over = sumo_speed_mode_95(_t(3.0), _t(22.5), _t(10.0), _t(10.0), **kw)
+    assert a.item() == pytest.approx(3.0) and not over.item()
+    # at 12.1 m/s the same gap caps +3 at the safe speed
+    v_safe = sumo_safe_follow_speed(_t(20.0), _t(12.1), _t(10.0), **SUMO_CAV).item()
+    a, over = sumo_speed_mode_95(_t(3.0), _t(22.5), _t(12.1), _t(10.0), **kw)
+    assert a.item() == pytest.approx((v_safe - 12.1) / 0.1) and over.item() and 0 < a.item() < 3.0
+    # the dtype of the command is kept; at standstill a brake command is not an override
+    a, over = sumo_speed_mode_95(torch.tensor([-3.0]), torch.tensor([50.0]), torch.tensor([0.0]),
+                                 torch.tensor([0.0]), **kw)
+    assert a.dtype == torch.float32 and a.item() == 0.0 and not over.item()
+
+
+@pytest.mark.parametrize("kw, field", [
+    (dict(decel=0.0), "decel"), (dict(accel_max=float("nan")), "accel_max"), (dict(leader_decel=-3.0), "leader_decel"),
+    (dict(dt=0.0), "dt"), (dict(params=KraussParams(tau=0.0)), "params.tau"),
+    (dict(params=KraussParams(min_gap=-1.0)), "params.min_gap"),
+])
+def test_sumo_speed_mode_95_bad_input_names_the_field(kw, field):
+    args = dict(accel_max=3.0, decel=3.0, leader_decel=3.0, dt=0.1)
+    args.update(kw)
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        sumo_speed_mode_95(_t(1.0), _t(10.0), _t(10.0), _t(10.0), **args)

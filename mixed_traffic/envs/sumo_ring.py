@@ -64,7 +64,7 @@ from mixed_traffic.envs.sumo_net import (
     write_routes,
 )
 from mixed_traffic.envs.traffic import head_gaps, initial_positions, make_specs, observe, stage_terms
-from mixed_traffic.physics import IDMParams, leader_gaps, saturate_accel
+from mixed_traffic.physics import IDMParams, KraussParams, leader_gaps, saturate_accel
 from mixed_traffic.scenarios import TrafficScenario, get_scenario
 
 Tensor = torch.Tensor
@@ -150,7 +150,8 @@ class SumoRingEnv(EnvBase):
         device: torch device of the emitted tensors.
         sumo_safety: ``False`` (speed mode 0): the CAV action executes exactly and only
             a safety layer guards it; ``True`` (speed mode 95): SUMO caps it at its
-            safe speed and accel/decel bounds.
+            safe speed and accel/decel bounds, and ``("cav", "override")`` marks the
+            capped commands. ``None``: the scenario's ``sumo_safety`` field.
         sigma: SUMO's driver imperfection for the human drivers (SUMO's IDM ignores it; human
             noise is ``accel_noise``).
         net_file: an existing ring network (from :func:`~mixed_traffic.envs.sumo_net.build_ring_network`)
@@ -172,13 +173,15 @@ class SumoRingEnv(EnvBase):
     batch_locked = True
 
     def __init__(self, scenario: str | TrafficScenario = "ring", *, device: str | torch.device = "cpu",
-                 sumo_safety: bool = False, sigma: float = 0.0, net_file: str | None = None,
+                 sumo_safety: bool | None = None, sigma: float = 0.0, net_file: str | None = None,
                  run_dir: str | None = None, sumo_args: tuple[str, ...] | list[str] = (),
                  netconvert: str | None = None, **overrides):
         if isinstance(scenario, TrafficScenario):
             sc = dataclasses.replace(scenario, **overrides).validate()
         else:
             sc = get_scenario(scenario, **overrides)
+        if sumo_safety is not None:
+            sc = dataclasses.replace(sc, sumo_safety=bool(sumo_safety)).validate()
         self._check_scenario(sc)
         if not 0.0 <= float(sigma) <= 1.0:
             raise ValueError(f"sigma={sigma!r} is invalid; allowed: [0, 1] (SUMO driver imperfection)")
@@ -191,7 +194,7 @@ class SumoRingEnv(EnvBase):
         self.J_max = sc.J_max
         self.profile = sc.make_profile()
         self.rng = torch.Generator().manual_seed(0)
-        self.sumo_safety = bool(sumo_safety)
+        self.sumo_safety = sc.sumo_safety
         self.sigma = float(sigma)
         self.sumo_args = tuple(str(a) for a in sumo_args)
         specs = make_specs(sc, (1,), device=self.device)
@@ -219,6 +222,7 @@ class SumoRingEnv(EnvBase):
         self.override_steps = 0  # steps in which SUMO executed an acceleration other than commanded
         self.override_count = 0  # (CAV, step) pairs overridden
         self.commanded_accel = np.zeros(sc.n_cav)
+        self._override = np.zeros(sc.n_cav)
 
         self._acquire()
         try:
@@ -318,8 +322,9 @@ class SumoRingEnv(EnvBase):
         common = dict(length=sc.vehicle_length, speedFactor=1, speedDev=0)
         head = dict(id="head", carFollowModel="IDM", accel=hh, decel=-hl, emergencyDecel=-hl, sigma=0,
                     tau=idm.T, minGap=idm.s0, delta=idm.delta, stepping=sc.dt, maxSpeed=idm.v0, **common)
-        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, 9.0), sigma=0,
-                   tau=1.0, minGap=2.5, maxSpeed=LANE_SPEED, **common)
+        kp = KraussParams()  # the torch backend's speed mode 95 models this vType
+        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, kp.emergency_decel),
+                   sigma=0, tau=kp.tau, minGap=kp.min_gap, maxSpeed=LANE_SPEED, **common)
         out = []
         for i, vid in enumerate(self._ids):
             start = self._s0 + float(self.init_pos[i])
@@ -375,6 +380,7 @@ class SumoRingEnv(EnvBase):
             self._close_sumo()
             raise
         self.acc = np.zeros(sc.n_vehicles)
+        self._override = np.zeros(sc.n_cav)
         self.step_count = 0
         self._head_hist = deque([self._tracked_speed()], maxlen=self._window)
         self._cav_hist = deque([self.vel[self._cav].copy()], maxlen=self._cav_window)
@@ -445,6 +451,8 @@ class SumoRingEnv(EnvBase):
             cav["head_speed"] = vel[:, :1].expand(-1, len(ci)).clone()
         else:
             speed_avg = cav["speed_avg"] = torch.as_tensor(np.mean(self._cav_hist, axis=0), **f).unsqueeze(0)
+        if sc.sumo_safety:
+            cav["override"] = torch.as_tensor(self._override, **f).unsqueeze(0)
         out = {
             "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg),
             "cav": cav,
@@ -521,6 +529,7 @@ class SumoRingEnv(EnvBase):
         overridden = np.abs(executed * sc.dt - commanded) > 1e-6
         self.override_count += int(overridden.sum())
         self.override_steps += int(overridden.any())
+        self._override = overridden.astype(np.float64)
         self.step_count += 1
         self._head_hist.append(self._tracked_speed())
         self._cav_hist.append(self.vel[self._cav].copy())

@@ -25,11 +25,13 @@ from torchrl.envs import EnvBase
 
 from mixed_traffic.physics import (
     IDMParams,
+    KraussParams,
     car_following_accel,
     idm_accel,
     integrate,
     leader_gaps,
     params_as_tensors,
+    sumo_speed_mode_95,
 )
 from mixed_traffic.scenarios import TrafficScenario, get_scenario
 
@@ -45,9 +47,10 @@ def observation_dim(sc: TrafficScenario) -> int:
 
 
 def cav_keys(sc: TrafficScenario) -> tuple[str, ...]:
-    """The ``("cav", ...)`` entries: head gap/speed with a head, the CAV's mean speed without."""
+    """The ``("cav", ...)`` entries: head gap/speed with a head, the CAV's mean speed without;
+    ``override`` (1.0 where SUMO's speed mode 95 changed the command) with ``sumo_safety``."""
     head = ("head_gap", "head_speed") if sc.head else ("speed_avg",)
-    return ("gap", "speed", "leader_speed", *head, "accel")
+    return ("gap", "speed", "leader_speed", *head, "accel") + (("override",) if sc.sumo_safety else ())
 
 
 def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=torch.float32) -> dict:
@@ -194,6 +197,18 @@ class TrafficEnv(EnvBase):
         batch_size: number of independent rows.
         device: torch device of all tensors.
         **overrides: scenario fields to override.
+
+    With ``sumo_safety=True`` the CAVs' commands pass SUMO's speed mode 95
+    (:func:`~mixed_traffic.physics.sumo_speed_mode_95`: capped by the Krauss safe speed of
+    the SUMO backend's CAV vType, then by the accel/decel bounds), as on the SUMO backend.
+    ``("cav", "override")`` marks the changed commands; ``override_steps`` (row-steps
+    with at least one CAV changed) and ``override_count`` ((row, CAV, step) triples) count
+    them over the env's life, like :class:`~mixed_traffic.envs.sumo_ring.SumoRingEnv`'s.
+
+    >>> env = TrafficEnv("ring", batch_size=2, sumo_safety=True)
+    >>> td = env.rollout(50, lambda td: td.set("action", torch.full((2, 1), 3.0)))
+    >>> env.override_steps > 0, td["next", "cav", "override"].shape
+    (True, torch.Size([2, 50, 1]))
     """
 
     batch_locked = True
@@ -229,6 +244,12 @@ class TrafficEnv(EnvBase):
         self._cav_window = max(1, int(round(sc.cav_speed_window / sc.dt)))
         self._hdv_lo = float(self._hdv_base.a_min)
         self._hdv_hi = float(self._hdv_base.a_max)
+        if sc.sumo_safety and sc.integration != "euler":
+            raise ValueError(f"integration: {sc.integration!r} is invalid with sumo_safety=True; allowed: 'euler' "
+                             "(the Krauss safe speed modelled is SUMO's default Euler update)")
+        self.override_steps = 0  # row-steps in which speed mode 95 changed a CAV's command
+        self.override_count = 0  # (row, CAV, step) triples changed
+        self._override = torch.zeros(B, sc.n_cav, **f)
         # state
         self.pos = torch.zeros(B, n, **f)
         self.vel = torch.zeros(B, n, **f)
@@ -286,6 +307,8 @@ class TrafficEnv(EnvBase):
         cav_acc = self.acc[:, self._cav]
         ci = self._cav
         cav = {"gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1], "accel": cav_acc}
+        if sc.sumo_safety:
+            cav["override"] = self._override
         speed_avg = None
         if sc.head:
             cav["head_gap"] = head_gaps(sc, self.pos, self.ring_len)
@@ -352,6 +375,8 @@ class TrafficEnv(EnvBase):
             self.cav_hist[idx] = 0.0
             self.cav_hist[idx, 0] = self.vel[idx][:, self._cav]
             self.cav_sum[idx] = self.vel[idx][:, self._cav]
+            self._override = self._override.clone()
+            self._override[idx] = 0.0
         gap = self._gaps(self.pos)
         v_eq = self._v_eq()
         j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq)
@@ -359,6 +384,28 @@ class TrafficEnv(EnvBase):
         false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
         out.update(done=false, terminated=false.clone(), truncated=false.clone(), collision=false.clone())
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _vtype_decel(self) -> Tensor:
+        """Each vehicle's SUMO vType ``decel`` ``[B, n]`` (what SUMO's safe speed assumes of a leader).
+
+        Head: ``-head_accel_bounds[0]``; CAVs: ``-cav_accel_bounds[0]``; humans: IDM ``b``
+        (OVM: ``-a_min``), as the SUMO backend writes them.
+        """
+        sc = self.scenario
+        hdv = self.hdv_params["b"] if "b" in self.hdv_params else -self.hdv_params["a_min"]
+        decel = hdv.clone()
+        if sc.head:
+            decel[:, 0] = -self._head_lo
+        decel[:, self._cav] = -self._a_lo
+        return decel
+
+    def _speed_mode_95(self, cav_accel: Tensor, gap: Tensor, vel: Tensor) -> tuple[Tensor, Tensor]:
+        """SUMO's speed mode 95 on the CAVs' (clipped) commands: executed accelerations and the override flags."""
+        ci = self._cav
+        lead = (ci - 1) % self.scenario.n_vehicles
+        return sumo_speed_mode_95(cav_accel, gap[:, ci], vel[:, ci], vel[:, lead], accel_max=self._a_hi,
+                                  decel=-self._a_lo, leader_decel=self._vtype_decel()[:, lead], dt=self.scenario.dt,
+                                  params=KraussParams(emergency_decel=max(-self._a_lo, KraussParams.emergency_decel)))
 
     def _push_head_speed_rows(self, idx: Tensor) -> None:
         v = self._tracked_speed(self.vel[idx])
@@ -392,6 +439,11 @@ class TrafficEnv(EnvBase):
                 a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
             acc[:, 0] = a_head
         acc[:, self._cav] = action.to(acc.dtype).clamp(self._a_lo, self._a_hi)
+        if sc.sumo_safety:
+            acc[:, self._cav], over = self._speed_mode_95(acc[:, self._cav], gap, vel)
+            self._override = over.to(acc.dtype)
+            self.override_count += int(over.sum())
+            self.override_steps += int(over.any(-1).sum())
         new_pos, new_vel, executed = integrate(pos, vel, acc, sc.dt, sc.integration)
         if sc.is_ring:
             new_pos = torch.remainder(new_pos, self.ring_len)

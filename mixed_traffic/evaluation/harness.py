@@ -19,6 +19,8 @@ Metrics per episode (all from the env key contract):
   transformed reward), ``mean_J`` (DeeP-LCC stage cost), ``safety_clip_rate`` (the
   intervention rate: share of steps where the safety layer changed the command),
   ``mean_abs_delta`` (m/s^2, mean |executed - commanded|),
+- ``override_rate``: share of steps where SUMO's speed mode 95 changed the CAV's command
+  (``sumo_safety=True`` on either backend: ``("cav", "override")``; 0 without it),
 - ``length`` (s).
 
 The policy itself: with ``cfg.eval.without_layer`` every profile also runs with the safety
@@ -40,11 +42,11 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
+from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_transformed_env
 
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
            "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate",
-           "mean_abs_delta", "length")
+           "mean_abs_delta", "override_rate", "length")
 
 
 @dataclass
@@ -123,6 +125,9 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     delta = nxt.get(("safety", "delta"), None)
     delta = delta[..., 0] if delta is not None else torch.zeros_like(a)
     out["mean_abs_delta"] = masked_mean(delta.abs(), valid)
+    override = nxt.get(("cav", "override"), None)
+    out["override_rate"] = masked_mean(override[..., 0].float(), valid) if override is not None else torch.zeros(
+        valid.shape[0])
     out["length"] = valid.sum(1).float() * dt
     trace = Trace(time=t, head_speed=vh, cav_speed=v, cav_accel=a, head_accel=a_head, gap=gap, head_gap=head_gap,
                   valid=valid, raw_accel=a - delta)
@@ -259,7 +264,8 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     profiles = list(profiles or cfg.eval.profiles)
     episodes = int(episodes or cfg.eval.episodes)
     seed = int(cfg.eval.seed if seed is None else seed)
-    report = {"episodes_per_profile": episodes, "eval_seed": seed, "profiles": {}}
+    report = {"episodes_per_profile": episodes, "eval_seed": seed, "profiles": {},
+              "sumo_safety": bool(env_kwargs(cfg.env).get("sumo_safety", False))}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)

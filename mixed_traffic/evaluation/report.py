@@ -18,7 +18,7 @@ MD_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", 
               ("speed_rmse_steady", "steady RMSE (m/s)", "{:.3f}"), ("speed_rmse", "RMSE (m/s)", "{:.3f}"),
               ("mean_abs_accel", "mean abs a (m/s2)", "{:.3f}"), ("mean_abs_jerk", "jerk (m/s3)", "{:.2f}"),
               ("return", "return", "{:.1f}"), ("safety_clip_rate", "intervention rate", "{:.3f}"),
-              ("mean_abs_delta", "mean abs Δa (m/s2)", "{:.3f}"))
+              ("mean_abs_delta", "mean abs Δa (m/s2)", "{:.3f}"), ("override_rate", "speed-mode-95 override rate", "{:.3f}"))
 NO_LAYER_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", "{:.2f}"),
                     ("min_gap_after", "min gap after warm-up (m)", "{:.2f}"),
                     ("max_head_gap", "max head gap (m)", "{:.2f}"), ("time_outside", "time outside (s)", "{:.1f}"),
@@ -62,10 +62,12 @@ def markdown(report: dict, title: str) -> str:
         lines += [f"policy: `{report['policy']}`", ""]
     lines += [f"{report['episodes_per_profile']} deterministic episodes per profile, evaluation seed "
               f"{report['eval_seed']}; mean ± std over episodes (collisions: total).", ""]
-    lines.append("| profile | " + " | ".join(c[1] for c in MD_COLUMNS) + " |")
-    lines.append("|---|" + "---|" * len(MD_COLUMNS))
+    # the speed-mode-95 override rate only where the env ran with sumo_safety
+    cols = MD_COLUMNS if report.get("sumo_safety") else tuple(c for c in MD_COLUMNS if c[0] != "override_rate")
+    lines.append("| profile | " + " | ".join(c[1] for c in cols) + " |")
+    lines.append("|---|" + "---|" * len(cols))
     for prof, r in report["profiles"].items():
-        lines.append(f"| {prof} | " + " | ".join(_cells(r, MD_COLUMNS)) + " |")
+        lines.append(f"| {prof} | " + " | ".join(_cells(r, cols)) + " |")
     nl = report.get("without_layer")
     if nl:
         lines += ["", "Without the safety layer (the policy's own commands executed), per start spacing:", ""]

@@ -33,6 +33,7 @@ structure, plus ``backend``, ``episode_seconds``, ``episode_seeds``, ``workers``
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import math
 
@@ -92,7 +93,7 @@ def make_sumo_eval_env(cfg: DictConfig, seeds: list[int], *, sumo_safety: bool =
         fns = [functools.partial(_make_sumo_env, seed=int(s), device=str(cfg.device), sumo_safety=bool(sumo_safety),
                                  **kw) for s in seeds]
         base = ParallelEnv(len(seeds), fns, serial_for_single=False)
-        sc = _scenario(kw)
+        sc = dataclasses.replace(_scenario(kw), sumo_safety=bool(sumo_safety))
         base.scenario, base.dt, base.J_max = sc, sc.dt, sc.J_max
     ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain]
     ts += [RewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]

@@ -20,7 +20,7 @@ from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal
 from mixed_traffic.envs import make_env
 
 ENV_FIELDS = ("observation", "profile", "profile_kwargs", "episode_seconds", "weight_v", "weight_s", "weight_u",
-              "s_min", "s_max", "hdv_param_noise")
+              "s_min", "s_max", "hdv_param_noise", "sumo_safety")
 
 
 # ----------------------------------------------------------------------------- env
