@@ -119,3 +119,21 @@ def test_mt_eval_cli_with_a_classical_controller(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     assert (tmp_path / "run" / "eval" / "report.md").is_file()
     assert "report:" in out.stdout
+
+
+def test_evaluation_reports_the_speed_mode_95_override_rate(tmp_path):
+    """With env.sumo_safety the report carries the share of steps SUMO's speed mode 95 changed."""
+    from tensordict.nn import TensorDictModule
+
+    from mixed_traffic.evaluation.report import write_report
+
+    cfg = compose(["experiment=ring_ppo", "env.sumo_safety=true"] + SHORT_EVAL)
+    always = TensorDictModule(lambda obs: torch.full((obs.shape[0], 1), 3.0), in_keys=["observation"],
+                              out_keys=["action"])
+    rep, traces = evaluate(cfg, always)
+    assert rep["sumo_safety"] and rep["overall"]["collisions"] == 0
+    assert rep["overall"]["override_rate"] > 0.5  # SUMO's safe speed caps "always +3" most of the time
+    write_report(rep, tmp_path, traces)
+    assert "speed-mode-95 override rate" in (tmp_path / "report.md").read_text()
+    off, _ = evaluate(compose(["experiment=ring_ppo"] + SHORT_EVAL), always)
+    assert not off["sumo_safety"] and off["overall"]["override_rate"] == 0.0

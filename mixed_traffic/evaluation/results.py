@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 COLUMNS = ("policy", "seed", "frames", "train wall (s)", "collisions / episodes", "min gap (m)",
-           "max head gap (m)", "time outside (s/ep)", "steady RMSE (m/s)", "mean abs a (m/s2)", "jerk (m/s3)", "return", "pass")
+           "max head gap (m)", "time outside (s/ep)", "steady RMSE (m/s)", "mean abs a (m/s2)", "jerk (m/s3)", "return", "override rate", "pass")
 
 
 def row(run_dir: str | Path) -> dict:
@@ -34,6 +34,8 @@ def row(run_dir: str | Path) -> dict:
         "steady RMSE (m/s)": f"{acc['steady_speed_rmse']:.3f}",
         "mean abs a (m/s2)": f"{ov['mean_abs_accel']:.3f}", "jerk (m/s3)": f"{ov['mean_abs_jerk']:.2f}",
         "return": f"{ov['return']:.0f}", "pass": "yes" if acc["pass"] else "no",
+        # share of steps SUMO's speed mode 95 changed the command (envs with sumo_safety only)
+        "override rate": f"{ov['override_rate']:.3f}" if rep.get("sumo_safety") else "–",
         "_wall": summ.get("wall_seconds"),
     }
 
