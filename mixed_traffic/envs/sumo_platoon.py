@@ -192,17 +192,7 @@ class SumoPlatoon:
             speed = v0 if (i or v_head is None) else float(v_head)
             specs.append(VehicleSpec(vid=vid, vtype=vt, start=self._head0 + float(pos0[0, i]), speed=speed))
         write_routes(self._routes, self.net, specs, laps=None)
-        ls = sumo_ring._libsumo()
-        self._acquire()
-        if self._closed_sumo:
-            sumo_ring._run_capturing_stderr(ls.start, ["sumo"] + self._sumo_cmd())
-        else:
-            try:
-                sumo_ring._run_capturing_stderr(ls.load, self._sumo_cmd())
-            except RuntimeError:
-                self._closed_sumo = True
-                raise
-        self._closed_sumo = False
+        ls = sumo_ring.start_or_reload(self)
         try:
             ls.simulationStep()  # inserts every vehicle at its depart position and speed
             missing = [v for v in self._ids if v not in set(ls.vehicle.getIDList())]

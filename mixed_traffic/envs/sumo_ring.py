@@ -139,6 +139,27 @@ def _run_capturing_stderr(fn, *args):
     return result, text
 
 
+def start_or_reload(env):
+    """Start SUMO with ``env._sumo_cmd()`` (first episode, or after a failure) or reload it.
+
+    ``env`` is a SUMO env holding this process's simulation (``_acquire``, ``_closed_sumo``,
+    ``_sumo_cmd``); a failed reload marks it closed so that the next reset starts afresh.
+    Returns the libsumo module.
+    """
+    ls = _libsumo()
+    env._acquire()
+    if env._closed_sumo:
+        _run_capturing_stderr(ls.start, ["sumo"] + env._sumo_cmd())
+    else:
+        try:
+            _run_capturing_stderr(ls.load, env._sumo_cmd())
+        except RuntimeError:
+            env._closed_sumo = True
+            raise
+    env._closed_sumo = False
+    return ls
+
+
 # ----------------------------------------------------------------------------- the env
 class SumoRingEnv(EnvBase):
     """The ring scenario simulated by SUMO (libsumo), batch size ``[1]``.
@@ -349,17 +370,7 @@ class SumoRingEnv(EnvBase):
                              "SUMO never runs a vehicle above its maxSpeed (= v0); allowed: v_init <= v0")
         laps = int(np.ceil(sc.episode_seconds * 60.0 / self.ring_length)) + 2
         write_routes(self._route_file, self.net, self._vehicle_specs(), laps=laps)
-        ls = _libsumo()
-        self._acquire()
-        if self._closed_sumo:
-            _run_capturing_stderr(ls.start, ["sumo"] + self._sumo_cmd())
-        else:
-            try:
-                _run_capturing_stderr(ls.load, self._sumo_cmd())
-            except RuntimeError:
-                self._closed_sumo = True
-                raise
-        self._closed_sumo = False
+        ls = start_or_reload(self)
         try:
             ls.simulationStep()  # inserts every vehicle at its depart position and speed
             present = set(ls.vehicle.getIDList())
