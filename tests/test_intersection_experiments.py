@@ -110,9 +110,9 @@ def test_hard_start_bank_and_conflict_cost():
 
 
 def test_ego_caused_conflict_cost_never_charges_waiting_or_reversing():
-    from mixed_traffic import make_env
     from torchrl.envs import TransformedEnv
 
+    from mixed_traffic import make_env
     from transforms.conflict_cost import ConflictCost, anticipation_cost, ego_caused_anticipation_cost
 
     # a left turner sweeping past the waiting ego's start: the plain prediction charges waiting, this does not
