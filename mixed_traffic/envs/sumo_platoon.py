@@ -115,29 +115,15 @@ class SumoPlatoon:
 
     # ------------------------------------------------------------------ one SUMO per process
     def _acquire(self) -> None:
-        with sumo_ring._LOCK:
-            owner = sumo_ring._OWNER
-            if owner is not None and owner is not self and not owner._closed_sumo:
-                raise RuntimeError(
-                    f"SumoPlatoon: a SUMO simulation is already running in this process (pid {os.getpid()}, "
-                    f"{type(owner).__name__}); libsumo runs one per process. Close it first (close()) or run "
-                    "the simulations in separate processes (torchrl.envs.ParallelEnv).")
-            sumo_ring._OWNER = self
+        sumo_ring.claim_process(self, "Close it first (close()) or run the simulations in separate processes "
+                                      "(torchrl.envs.ParallelEnv).")
 
     def _close_sumo(self) -> None:
-        if not self._closed_sumo:
-            self._closed_sumo = True
-            try:
-                sumo_ring._libsumo().close()
-            except Exception:
-                pass
+        sumo_ring.close_simulation(self)
 
     def close(self) -> None:
         """Close the simulation and remove its files (idempotent)."""
-        self._close_sumo()
-        with sumo_ring._LOCK:
-            if sumo_ring._OWNER is self:
-                sumo_ring._OWNER = None
+        sumo_ring.release_process(self)
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None

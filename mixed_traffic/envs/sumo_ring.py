@@ -75,7 +75,7 @@ SPEED_MODE_HEAD = 31  # SUMO's default: safe speed and accel/decel bounds
 
 # ----------------------------------------------------------------------------- one SUMO per process
 _LOCK = threading.Lock()
-_OWNER: SumoRingEnv | None = None  # the env whose simulation libsumo currently runs
+_OWNER = None  # the SUMO env (ring or platoon) whose simulation libsumo currently runs
 
 
 def _libsumo():
@@ -106,6 +106,35 @@ def _shutdown_sumo() -> None:
 
 
 atexit.register(_shutdown_sumo)
+
+
+def claim_process(owner, hint: str) -> None:
+    """Make ``owner`` the process's SUMO user; another live simulation raises ``RuntimeError`` (``hint``: what to do)."""
+    global _OWNER
+    with _LOCK:
+        if _OWNER is not None and _OWNER is not owner and not _OWNER._closed_sumo:
+            raise RuntimeError(f"{type(owner).__name__}: a SUMO simulation is already running in this process "
+                               f"(pid {os.getpid()}, {type(_OWNER).__name__}); libsumo runs one per process. {hint}")
+        _OWNER = owner
+
+
+def release_process(owner) -> None:
+    """Close ``owner``'s simulation and give up the process if it holds it."""
+    global _OWNER
+    close_simulation(owner)
+    with _LOCK:
+        if _OWNER is owner:
+            _OWNER = None
+
+
+def close_simulation(owner) -> None:
+    """Close ``owner``'s running simulation (idempotent; errors inside SUMO are ignored)."""
+    if not owner._closed_sumo:
+        owner._closed_sumo = True
+        try:
+            _libsumo().close()
+        except Exception:
+            pass
 
 
 def _run_capturing_stderr(fn, *args):
@@ -287,34 +316,18 @@ class SumoRingEnv(EnvBase):
             bad("init_spacing_rows", sc.init_spacing_rows, "None (use init_spacing)")
 
     def _acquire(self) -> None:
-        global _OWNER
-        with _LOCK:
-            if _OWNER is not None and _OWNER is not self and not _OWNER._closed_sumo:
-                raise RuntimeError(
-                    f"SumoRingEnv: a SUMO simulation is already running in this process (pid {os.getpid()}); "
-                    "libsumo runs one per process. Close it first (env.close()) or run several envs in "
-                    "separate processes with torchrl.envs.ParallelEnv(n, functools.partial(make_env, 'ring', "
-                    "backend='sumo')).")
-            _OWNER = self
+        claim_process(self, "Close it first (env.close()) or run several envs in separate processes with "
+                            "torchrl.envs.ParallelEnv(n, functools.partial(make_env, 'ring', backend='sumo')).")
 
     def _release(self) -> None:
-        global _OWNER
         self._released = True
-        self._close_sumo()
-        with _LOCK:
-            if _OWNER is self:
-                _OWNER = None
+        release_process(self)
         if self._tmp_dir is not None:
             shutil.rmtree(self._tmp_dir, ignore_errors=True)
             self._tmp_dir = None
 
     def _close_sumo(self) -> None:
-        if not self._closed_sumo:
-            self._closed_sumo = True
-            try:
-                _libsumo().close()
-            except Exception:
-                pass
+        close_simulation(self)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         """Close the SUMO simulation and remove the temporary files."""

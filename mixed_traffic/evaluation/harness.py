@@ -176,7 +176,6 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
 def eval_scenario(cfg: DictConfig, profile: str):
     """The scenario one evaluation profile runs (``cfg.env`` with :func:`eval_env_overrides`)."""
     from mixed_traffic.scenarios import get_scenario
-    from mixed_traffic.training.builders import env_kwargs
 
     return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile)))
 
