@@ -138,6 +138,44 @@ class NonNegativeRewardConfig:
 
 
 @dataclass
+class ProfileRewardConfig:
+    """:class:`transforms.ProfileNormalisedReward`: ``max(J_max[p] - J, 0) / J_max[p]`` per head profile ``p``.
+
+    ``J_max``: ``{profile: value > 0}`` for every profile the env draws (the platoon's ``profiles``).
+    """
+
+    J_max: dict[str, float] = field(default_factory=dict)
+    collision_reward: float = -1.0
+
+
+@dataclass
+class CounterfactualRewardConfig:
+    """:class:`transforms.CounterfactualReward`: ``max(0, offset + (J_twin - J) / (scale J_ref[p]))``.
+
+    The twin is driven by the NNMPC of ``checkpoint`` on the same disturbances; ``J_ref``:
+    ``{profile: the NNMPC's mean stage cost per step > 0}`` for every profile the env draws.
+    """
+
+    checkpoint: str = "outputs/deeplcc/nnmpc/nnmpc_bc_relabelled.pt"
+    J_ref: dict[str, float] = field(default_factory=dict)
+    scale: float = 5.0
+    offset: float = 1.0
+    collision_reward: float = -1.0
+
+
+@dataclass
+class SetPointConfig:
+    """``set_point`` in the chain: the policy sets FollowerStopper's set point, ``U = U_uniform (ratio0 + weight a)``.
+
+    ``a`` in [-1, 1] per CAV (:class:`transforms.SetPointAction`); ``U_uniform`` is the ring's
+    uniform-flow speed (the humans' IDM at spacing ``L / n``).
+    """
+
+    ratio0: float = 0.9
+    weight: float = 0.1
+
+
+@dataclass
 class DiscretizerConfig:
     """State bins for tabular Q (per observation dim) and action bins for DQN / tabular Q."""
 
@@ -194,6 +232,9 @@ class TransformsConfig:
     residual_nnmpc: ResidualNNMPCConfig = field(default_factory=ResidualNNMPCConfig)
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
+    profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)
+    counterfactual_reward: CounterfactualRewardConfig = field(default_factory=CounterfactualRewardConfig)
+    set_point: SetPointConfig = field(default_factory=SetPointConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
     barrier_force: BarrierForceConfig = field(default_factory=BarrierForceConfig)
     residual_nmpc: ResidualNMPCConfig = field(default_factory=ResidualNMPCConfig)
@@ -262,7 +303,8 @@ class BCConfig:
     pretrain_lr: float = 1e-3
     expert: str = "nmpc"
     episodes: int = 384
-    demos: str | None = None  # None: outputs/demos/<expert>_seed<seed>_n<episodes>.pt
+    agents: str = "mixed"  # "mixed": mixed-style agents; "training": the env's bank shares (close starts, reactive, pausing)
+    demos: str | None = None  # None: outputs/demos/<expert>_seed<seed>_n<episodes>[_<shares>].pt
 
 
 @dataclass

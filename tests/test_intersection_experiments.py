@@ -25,11 +25,14 @@ def _transform_types() -> dict:
     from transforms import (
         BarrierForce,
         ConflictCost,
+        CounterfactualReward,
         InterventionCost,
         JerkPenalty,
         NonNegativeReward,
+        ProfileNormalisedReward,
         ResidualAction,
         SafetyLayer,
+        SetPointAction,
         StateDiscretizer,
     )
 
@@ -37,7 +40,8 @@ def _transform_types() -> dict:
             "intervention_cost": InterventionCost, "residual_idm": ResidualAction, "residual_nnmpc": ResidualAction,
             "jerk_penalty": JerkPenalty,
             "state_discretizer": StateDiscretizer, "barrier_force": BarrierForce, "residual_nmpc": ResidualNMPC,
-            "conflict_cost": ConflictCost}
+            "conflict_cost": ConflictCost, "profile_reward": ProfileNormalisedReward,
+            "counterfactual_reward": CounterfactualReward, "set_point": SetPointAction}
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -50,6 +54,7 @@ def test_experiment_builds_the_transforms_loss_and_policy_it_names(name, tmp_pat
 
         NNMPC().save(tmp_path / "nnmpc.pt")
         cfg.transforms.residual_nnmpc.checkpoint = str(tmp_path / "nnmpc.pt")
+        cfg.transforms.counterfactual_reward.checkpoint = str(tmp_path / "nnmpc.pt")
     if cfg.get("controller"):  # a classical controller: evaluated only, nothing to train
         assert cfg.controller == "nmpc" and cfg.transforms.chain == []
         return

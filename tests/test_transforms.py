@@ -48,6 +48,73 @@ def test_non_negative_reward_formula_and_collision():
         NonNegativeReward(J_max=0.0)
 
 
+def test_profile_normalised_reward_scales_each_profile_by_its_own_j_max():
+    from mixed_traffic.envs.platoon import PROFILE_KINDS
+    from transforms import ProfileNormalisedReward
+
+    jm = {"random1": 10.0, "brake": 1000.0}
+    env = make_env("platoon", batch_size=4, seed=0, profiles=["random1", "brake"], profile_rows=True)
+    tenv = TransformedEnv(env, ProfileNormalisedReward(jm, kinds=PROFILE_KINDS))
+    check_env_specs(tenv)
+    td = tenv.rollout(5)
+    j, kind = td["next", "traffic", "J"], td["next", "deeplcc", "kind"]
+    j_max = torch.where(kind == PROFILE_KINDS.index("brake"), 1000.0, 10.0)
+    assert torch.allclose(td["next", "reward"], ((j_max - j).clamp_min(0) / j_max).to(td["next", "reward"].dtype))
+    # the same stage cost is worth 100x more reward loss on the profile with the 100x smaller J_max
+    from tensordict import TensorDict
+
+    t = ProfileNormalisedReward(jm, kinds=PROFILE_KINDS)
+    k = [PROFILE_KINDS.index("random1"), PROFILE_KINDS.index("brake"), PROFILE_KINDS.index("brake")]
+    nxt = TensorDict({"traffic": {"J": torch.tensor([[1.0], [1.0], [1.0]])}, "deeplcc": {"kind": torch.tensor(k)[:, None]},
+                      "collision": torch.tensor([[False], [False], [True]]), "reward": torch.zeros(3, 1)}, [3])
+    assert t._call(nxt)["reward"].squeeze(-1).tolist() == pytest.approx([0.9, 0.999, -1.0])
+    # a row whose profile has no J_max fails and names it; bad tables name the field
+    nxt["deeplcc", "kind"] = torch.full((3, 1), PROFILE_KINDS.index("sine5"))
+    with pytest.raises(ValueError, match="sine5"):
+        t._call(nxt)
+    with pytest.raises(ValueError, match="J_max"):
+        ProfileNormalisedReward({"random1": 0.0}, kinds=PROFILE_KINDS)
+    with pytest.raises(ValueError, match="J_max"):
+        ProfileNormalisedReward({"no_such_profile": 1.0}, kinds=PROFILE_KINDS)
+
+
+def test_counterfactual_reward_twin_is_the_base_controllers_own_closed_loop():
+    from tensordict.nn import TensorDictModule
+
+    from mixed_traffic.envs.platoon import PROFILE_KINDS
+    from transforms import CounterfactualReward
+
+    def base_fn(uini, yini):  # a fixed feedback on the window: the twin's controller
+        return (-0.3 * yini[..., -4:-2] + 0.1 * uini[..., -2:]).clamp(-5, 2)
+
+    base = TensorDictModule(base_fn, in_keys=["uini", "yini"], out_keys=["action"])
+    other = TensorDictModule(lambda o: torch.full((o.shape[0], 2), 0.4), in_keys=["observation"], out_keys=["action"])
+    jr = {"random3": 2.0, "brake": 100.0}
+
+    def env():  # humans with noise and a model mismatch: the twin must replay the same draws
+        e = make_env("platoon", batch_size=4, seed=3, profiles=["random3", "brake"], profile_rows=True,
+                     mismatch="idm")
+        return TransformedEnv(e, CounterfactualReward(base, jr, kinds=PROFILE_KINDS, scale=2.0))
+
+    check_env_specs(env())
+    alone = env().rollout(60, base)
+    assert torch.equal(alone["next", "traffic", "J_twin"], alone["next", "traffic", "J"])
+    assert (alone["next", "reward"] == 1).all()
+    run = env().rollout(60, other)
+    # the twin of a run with another policy is, step for step, the base controller's closed loop
+    assert torch.allclose(run["next", "traffic", "J_twin"], alone["next", "traffic", "J"], rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(run["next", "traffic", "J"], alone["next", "traffic", "J"])
+    kind = run["next", "deeplcc", "kind"]
+    j_ref = torch.where(kind == PROFILE_KINDS.index("brake"), 100.0, 2.0)
+    expected = (1 + (run["next", "traffic", "J_twin"] - run["next", "traffic", "J"]) / (2.0 * j_ref)).clamp_min(0)
+    assert torch.allclose(run["next", "reward"], expected)
+    with pytest.raises(ValueError, match="J_ref"):
+        CounterfactualReward(base, {"random3": -1.0}, kinds=PROFILE_KINDS)
+    with pytest.raises(ValueError, match="cannot replay"):
+        TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                       CounterfactualReward(base, jr, kinds=PROFILE_KINDS)).reset()
+
+
 def test_quadratic_reward_is_minus_j():
     env = TransformedEnv(make_env("ring", batch_size=2, seed=0), QuadraticReward(scale=2.0))
     td = env.rollout(5)
@@ -208,7 +275,7 @@ def test_residual_action_executes_clipped_sum_and_logs_base():
 # ----------------------------------------------------------------------------- docstrings
 @pytest.mark.parametrize("module", [
     "transforms.safety_layer", "transforms.lagrangian", "transforms.rewards", "transforms.discretizer",
-    "transforms.residual", "transforms.intervention_cost", "transforms.jerk_penalty", "losses.lagrangian_ppo", "losses.bc", "losses.residual", "losses.qlearning",
+    "transforms.residual", "transforms.counterfactual_reward", "transforms.intervention_cost", "transforms.jerk_penalty", "losses.lagrangian_ppo", "losses.bc", "losses.residual", "losses.qlearning",
     "losses.dqn",
 ])
 def test_docstring_examples_run(module):

@@ -273,3 +273,46 @@ def test_classical_rows_drive_the_cav_themselves_not_through_the_residual():
     b, _ = evaluate_waves(without, controllers=["human"])
     ma, mb = (r["rings"]["240"]["controllers"]["human"]["per_episode"] for r in (a, b))
     assert ma["mean_speed"] == mb["mean_speed"] and ma["speed_std"] == mb["speed_std"]
+
+
+def test_set_point_action_is_follower_stopper_at_the_chosen_ratio():
+    from torchrl.envs import TransformedEnv
+
+    from mixed_traffic.controllers.dampers import make_damper
+    from transforms import SetPointAction
+
+    def run(ratio0, a, policy_of_env):
+        base = make_env("ring_wave", batch_size=3, seed=5, ring_length_range=[220.0, 270.0])
+        if policy_of_env is None:
+            env = TransformedEnv(base, SetPointAction(make_damper("follower_stopper", base).module, ratio0=ratio0,
+                                                      weight=0.05))
+            return env.rollout(200, lambda td: td.set("action", torch.full((3, 1), a)))
+        return base.rollout(200, policy_of_env(base))
+
+    for ratio0, a, ratio in ((0.9, 0.0, 0.9), (0.9, 1.0, 0.95), (0.95, -1.0, 0.9)):
+        ours = run(ratio0, a, None)
+        fs = run(None, None, lambda e, r=ratio: make_damper("follower_stopper", e, u_ratio=r))
+        assert torch.allclose(ours["next", "traffic", "speed"], fs["next", "traffic", "speed"], atol=1e-5)
+        assert torch.allclose(ours["next", "set_point", "ratio"], torch.tensor(ratio))
+    base = make_env("ring_wave", batch_size=2, seed=0)
+    env = TransformedEnv(base, SetPointAction(make_damper("follower_stopper", base).module))
+    assert env.action_spec.space.low.min() == -1 and env.action_spec.space.high.max() == 1
+    check_env_specs(env)
+    with pytest.raises(ValueError, match="weight"):
+        SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.5, weight=0.6)
+    with pytest.raises(ValueError, match="set_point"):
+        SetPointAction(torch.nn.Linear(1, 1))
+
+
+def test_wave_controllers_take_arguments_and_name_bad_ones():
+    from mixed_traffic.evaluation.waves import controller_factories, parse_controller
+
+    assert parse_controller("follower_stopper:u_ratio=0.93") == ("follower_stopper", {"u_ratio": 0.93})
+    assert parse_controller("pi_saturation") == ("pi_saturation", {})
+    cfg = compose(["experiment=ring_wave_lppo"])
+    env = make_env("ring_wave", batch_size=2, seed=0, ring_length=230.0)
+    fac = controller_factories(cfg, ["follower_stopper:u_ratio=0.9"])
+    assert fac["follower_stopper:u_ratio=0.9"][0](env).module.u_ratio == 0.9
+    for bad in ("follower_stopper:u_ratio", "follower_stopper:u_ratio=fast", "no_such_damper:u_ratio=1"):
+        with pytest.raises(ValueError, match="eval.wave.controllers"):
+            controller_factories(cfg, [bad])

@@ -5,14 +5,16 @@
 
 from transforms.barrier_force import BarrierForce
 from transforms.conflict_cost import ConflictCost
+from transforms.counterfactual_reward import CounterfactualReward
 from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
 from transforms.intervention_cost import InterventionCost
 from transforms.jerk_penalty import JerkPenalty
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.residual import ResidualAction
-from transforms.rewards import NonNegativeReward, QuadraticReward
+from transforms.rewards import NonNegativeReward, ProfileNormalisedReward, QuadraticReward
 from transforms.safety_layer import SafetyLayer
+from transforms.set_point import SetPointAction
 
 __all__ = [
     "SafetyLayer",
@@ -21,10 +23,13 @@ __all__ = [
     "LagrangeMultiplier",
     "LagrangianPenalty",
     "NonNegativeReward",
+    "ProfileNormalisedReward",
     "QuadraticReward",
     "StateDiscretizer",
     "ResidualAction",
+    "SetPointAction",
     "DeePLCCHistory",
     "BarrierForce",
     "ConflictCost",
+    "CounterfactualReward",
 ]

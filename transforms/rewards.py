@@ -135,3 +135,66 @@ class QuadraticReward(_StageCostReward):
         old = reward_spec[self.reward_key]
         reward_spec[self.reward_key] = Unbounded(shape=old.shape, dtype=old.dtype, device=old.device)
         return reward_spec
+
+
+class ProfileNormalisedReward(NonNegativeReward):
+    """:class:`NonNegativeReward` with one ``J_max`` per head profile: ``r = max(J_max[p] - J, 0) / J_max[p]``.
+
+    Written because on the DeeP-LCC platoon the stage cost of one head profile is orders of
+    magnitude above another's (under the NNMPC, mean ``J`` per step 0.23 on random +-1 against
+    ~150 in the brake scenario): with one ``J_max`` a 10% cut on the small profiles is worth
+    ~1e-4 of the reward PPO sees and the return is the brake scenario's alone. With ``J_max[p]``
+    a fixed multiple of profile ``p``'s reference cost, a given *relative* cut is worth the same
+    reward on every profile. TorchRL's ``RewardScaling`` has one scale for all rows.
+
+    Args:
+        J_max: ``{profile name: J_max}``, one entry (> 0) for every name in ``kinds`` the env draws.
+        kinds: the profile names in the order of the env's profile index (the platoon's
+            ``PROFILE_KINDS``).
+        kind_key: the per-row profile index in ``"next"`` (``("deeplcc", "kind")``).
+        collision_reward, j_key, collision_key, reward_key: as in :class:`NonNegativeReward`.
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.envs.platoon import PROFILE_KINDS
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import ProfileNormalisedReward
+        >>> env = make_env("platoon", batch_size=2, seed=0, profiles=["random1", "brake"], profile_rows=True)
+        >>> t = ProfileNormalisedReward({"random1": 5.0, "brake": 3000.0}, kinds=PROFILE_KINDS)
+        >>> td = TransformedEnv(env, t).rollout(3)
+        >>> bool(((td["next", "reward"] >= 0) & (td["next", "reward"] <= 1)).all())
+        True
+    """
+
+    def __init__(self, J_max: dict, *, kinds, kind_key: NestedKey = ("deeplcc", "kind"),
+                 collision_reward: float = -1.0, j_key: NestedKey = ("traffic", "J"),
+                 collision_key: NestedKey = "collision", reward_key: NestedKey = "reward"):
+        kinds = list(kinds)
+        bad = {k: v for k, v in dict(J_max).items() if k not in kinds or not float(v) > 0}
+        if not J_max or bad:
+            raise ValueError(f"ProfileNormalisedReward: J_max={dict(J_max)!r} is invalid; allowed: a non-empty "
+                             f"mapping from profile names in {kinds} to values > 0 (bad: {bad})")
+        super().__init__(1.0, collision_reward=collision_reward, j_key=j_key, collision_key=collision_key,
+                         reward_key=reward_key)
+        # NaN for a profile without a J_max: a row that draws it fails loudly in _reward
+        table = torch.tensor([float(J_max.get(k, float("nan"))) for k in kinds], dtype=torch.float32)
+        self.register_buffer("J_max_table", table)
+        self.kinds, self.kind_key = kinds, kind_key
+        self.in_keys = [*self.in_keys, kind_key]
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        kind = next_tensordict.get(self.kind_key).long()
+        j_max = self.J_max_table.to(kind.device)[kind]
+        if torch.isnan(j_max).any():
+            missing = sorted({self.kinds[int(k)] for k in kind[torch.isnan(j_max)].flatten().tolist()})
+            raise ValueError(f"ProfileNormalisedReward: no J_max for profile(s) {missing}; "
+                             f"given: {[k for k, v in zip(self.kinds, self.J_max_table.tolist()) if v == v]}")
+        self._row_J_max = j_max
+        return super()._call(next_tensordict)
+
+    def _reward(self, j, collision):
+        j_max = self._row_J_max.reshape(j.shape).to(j.dtype)
+        r = (j_max - j).clamp_min(0.0) / j_max
+        if collision is not None:
+            r = torch.where(collision.reshape(r.shape), torch.full_like(r, self.collision_reward), r)
+        return r

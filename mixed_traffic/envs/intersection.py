@@ -94,6 +94,27 @@ class ObservationFeatures(nn.Module):
         return torch.cat(x + [e / self.extra_scale for e in extra], dim=-1)
 
 
+def agent_bank(n: int, *, seed: int, style: str = "mixed", hard_start_fraction: float = 0.0,
+               hard_start_x: tuple[float, float] = (2.2, 2.6), reactive_fraction: float = 0.0,
+               pause_fraction: float = 0.0, **kw) -> AgentTrajectories:
+    """A training bank of ``n`` agents: ``style`` agents, with the given shares replaced by close
+    starts (``x0`` in ``hard_start_x``), reactive agents and pausing agents (``kw``: ``split``,
+    ``behaviours``, ``horizon`` of :func:`sample_agent_trajectories`)."""
+    n_hard = int(round(hard_start_fraction * n))
+    n_react = int(round(reactive_fraction * n))
+    n_pause = int(round(pause_fraction * n))
+    n_plain = max(0, n - n_hard - n_react - n_pause)
+    banks = [sample_agent_trajectories(n_plain, seed=abs(seed), style=style, **kw)] if n_plain else []
+    if n_hard:
+        banks.append(sample_agent_trajectories(n_hard, seed=abs(seed) + 7919, style=style, **kw,
+                                               params=AgentModelParams(start_x=tuple(hard_start_x))))
+    if n_react:
+        banks.append(sample_agent_trajectories(n_react, seed=abs(seed) + 104_729, style="reactive", **kw))
+    if n_pause:
+        banks.append(sample_agent_trajectories(n_pause, seed=abs(seed) + 130_363, style="pause", **kw))
+    return AgentTrajectories.cat(banks)
+
+
 class IntersectionEnv(EnvBase):
     """Batched unsignalised-intersection environment (see the module docstring for keys).
 
@@ -234,20 +255,11 @@ class IntersectionEnv(EnvBase):
         self._rng.manual_seed(seed)
         self._seq = 0
         if not self._fixed_bank:
-            n_hard = int(round(self.hard_start_fraction * self.agent_bank_size))
-            n_react = int(round(self.reactive_fraction * self.agent_bank_size))
-            kw = dict(split=self.agent_split, behaviours=self.agent_behaviours, horizon=self.max_steps)
-            n_pause = int(round(self.pause_fraction * self.agent_bank_size))
-            n_plain = max(0, self.agent_bank_size - n_hard - n_react - n_pause)
-            banks = [sample_agent_trajectories(n_plain, seed=abs(seed), style=self.agent_style, **kw)] if n_plain else []
-            if n_hard:
-                banks.append(sample_agent_trajectories(n_hard, seed=abs(seed) + 7919, style=self.agent_style, **kw,
-                                                       params=AgentModelParams(start_x=self.hard_start_x)))
-            if n_react:
-                banks.append(sample_agent_trajectories(n_react, seed=abs(seed) + 104_729, style="reactive", **kw))
-            if n_pause:
-                banks.append(sample_agent_trajectories(n_pause, seed=abs(seed) + 130_363, style="pause", **kw))
-            self.bank = AgentTrajectories.cat(banks).to(self.device)
+            self.bank = agent_bank(self.agent_bank_size, seed=seed, style=self.agent_style,
+                                   hard_start_fraction=self.hard_start_fraction, hard_start_x=self.hard_start_x,
+                                   reactive_fraction=self.reactive_fraction, pause_fraction=self.pause_fraction,
+                                   split=self.agent_split, behaviours=self.agent_behaviours,
+                                   horizon=self.max_steps).to(self.device)
         return seed
 
     # ------------------------------------------------------------------ helpers

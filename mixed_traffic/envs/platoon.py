@@ -351,6 +351,36 @@ class PlatoonEnv(EnvBase):
                "cav": cav, "traffic": traffic}
         return _to(out, f)
 
+    # ------------------------------------------------------------------ twin replay (CounterfactualReward)
+    #: the per-row simulation state: a twin holding these rows (and the same noise draws) replays them
+    STATE = ("pos", "vel", "acc", "k", "head_v", "kind", "adaptive", "v_star", "w_vh", "w_v", "w_s", "w_u")
+
+    def make_twin(self) -> PlatoonEnv:
+        """A second env of this scenario and batch size whose rows can replay this one's (:meth:`copy_rows_from`)."""
+        if type(self)._physics is not PlatoonEnv._physics:
+            raise ValueError(f"{type(self).__name__}: a twin replays the torch physics with the same noise draws; "
+                             "allowed: the torch backend (backend='torch')")
+        return PlatoonEnv(batch_size=self.batch_size[0], **dataclasses.asdict(self.scenario))
+
+    def copy_rows_from(self, src: PlatoonEnv, rows: Tensor | None = None) -> None:
+        """Set rows ``rows`` (all if None) to ``src``'s state in those rows (same scenario and batch size)."""
+        rows = slice(None) if rows is None else rows
+        for name in self.STATE:
+            getattr(self, name)[rows] = getattr(src, name)[rows]
+        for k, v in src.hdv.items():
+            self.hdv[k][rows] = v[rows]
+
+    def replay_step(self, u: Tensor, rng_state: Tensor) -> Tensor:
+        """Step every row with CAV input ``u`` drawing the noise from ``rng_state``; the stage cost ``J`` [B]."""
+        self.rng.set_state(rng_state)
+        J, _ = self._advance(slice(None), u.to(DTYPE).reshape(self.batch_size[0], -1))
+        return J
+
+    def window(self) -> dict:
+        """The DeeP-LCC window of every row (``uini``, ``yini``, ``eini``, float32), as the env outputs it."""
+        out = self._output()
+        return {k: out[k] for k in ("uini", "yini", "eini")}
+
     # ------------------------------------------------------------------ EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         sc = self.scenario

@@ -107,7 +107,7 @@ def wave_metrics(td: TensorDictBase, *, dt: float, warmup: float, hard_brake: fl
 
 # ----------------------------------------------------------------------------- runs
 #: transforms that turn a policy's output into the CAV's command: a classical damper drives the CAV itself
-POLICY_ONLY = ("residual_damper", "residual_idm", "intervention_cost")
+POLICY_ONLY = ("residual_damper", "residual_idm", "set_point", "intervention_cost")
 
 
 def _eval_cfg(cfg: DictConfig, *, safety_layer: bool, policy: bool = True) -> DictConfig:
@@ -161,6 +161,21 @@ def _stats(x: torch.Tensor) -> dict:
             "min": float(x.min()), "max": float(x.max())}
 
 
+def parse_controller(name: str) -> tuple[str, dict]:
+    """``"follower_stopper:u_ratio=0.93;U=3"`` -> ``("follower_stopper", {"u_ratio": 0.93, "U": 3.0})``."""
+    damper, _, args = name.partition(":")
+    kwargs = {}
+    for item in filter(None, args.split(";")):
+        key, eq, value = item.partition("=")
+        try:
+            kwargs[key.strip()] = float(value)
+        except ValueError:
+            eq = ""
+        if not eq or not key.strip():
+            raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: name or name:key=number[;key=number]")
+    return damper, kwargs
+
+
 def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: int = 0) -> dict:
     """``{label: (factory(env) -> policy, with_safety_layer)}`` for the wave comparison."""
     from mixed_traffic.controllers.dampers import DAMPERS, make_damper
@@ -169,9 +184,11 @@ def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: i
     for name in names:
         if name == "policy":
             continue
-        if name not in DAMPERS:
-            raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: {list(DAMPERS)} (+ 'policy')")
-        out[name] = ((lambda n: (lambda env: make_damper(n, env, seed=seed)))(name), False)
+        damper, kwargs = parse_controller(name)
+        if damper not in DAMPERS:
+            raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: {list(DAMPERS)} (+ 'policy'), "
+                             "optionally with arguments, e.g. 'follower_stopper:u_ratio=0.93'")
+        out[name] = ((lambda n, kw: (lambda env: make_damper(n, env, seed=seed, **kw)))(damper, kwargs), False)
     if policy_factory is not None:
         if cfg.eval.wave.safety_layer:
             out["policy"] = (policy_factory, True)

@@ -39,6 +39,25 @@ def _non_negative_reward(tcfg, env):
     return NonNegativeReward(collision_reward=tcfg.non_negative_reward.collision_reward)
 
 
+def _profile_reward(tcfg, env):
+    from mixed_traffic.envs.platoon import PROFILE_KINDS
+    from transforms import ProfileNormalisedReward
+
+    c = tcfg.profile_reward
+    return ProfileNormalisedReward(dict(c.J_max), kinds=PROFILE_KINDS, collision_reward=c.collision_reward)
+
+
+def _counterfactual_reward(tcfg, env):
+    from mixed_traffic.controllers.deeplcc.rlmpc import nnmpc_base
+    from mixed_traffic.envs.platoon import PROFILE_KINDS
+    from transforms import CounterfactualReward
+
+    c = tcfg.counterfactual_reward
+    return CounterfactualReward(nnmpc_base(c.checkpoint, "transforms.counterfactual_reward.checkpoint"), dict(c.J_ref),
+                                kinds=PROFILE_KINDS, scale=c.scale, offset=c.offset,
+                                collision_reward=c.collision_reward)
+
+
 def _safety_layer(tcfg, env):
     from transforms import SafetyLayer
 
@@ -52,6 +71,14 @@ def _residual_damper(tcfg, env):
 
     r = tcfg.residual_damper
     return ResidualAction(make_damper(r.base, env), weight=r.weight)
+
+
+def _set_point(tcfg, env):
+    from mixed_traffic.controllers.dampers import make_damper
+    from transforms import SetPointAction
+
+    c = tcfg.set_point
+    return SetPointAction(make_damper("follower_stopper", env).module, ratio0=c.ratio0, weight=c.weight)
 
 
 def _intervention_cost(tcfg, env):
@@ -111,8 +138,11 @@ def _conflict_cost(tcfg, env):
 # name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
 TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
+    "profile_reward": _profile_reward,
+    "counterfactual_reward": _counterfactual_reward,
     "safety_layer": _safety_layer,
     "residual_damper": _residual_damper,
+    "set_point": _set_point,
     "intervention_cost": _intervention_cost,
     "residual_idm": _residual_idm,
     "residual_nnmpc": _residual_nnmpc,

@@ -76,6 +76,22 @@ def build_ppo(cfg: DictConfig, env):
     return actor, critic, loss, gaes, penalty
 
 
+def demo_agent_mix(cfg: DictConfig) -> dict | None:
+    """The agent shares of the BC demonstrations' bank: None (``loss.bc.agents: mixed``) or the env's."""
+    agents = cfg.loss.bc.get("agents", "mixed")
+    if agents not in ("mixed", "training"):
+        raise ValueError(f"loss.bc.agents={agents!r} is invalid; allowed: 'mixed' or 'training'")
+    if agents == "mixed":
+        return None
+    from mixed_traffic.intersection.demos import MIX_FIELDS
+
+    ov = cfg.env.get("overrides") or {}
+    mix = {k: float(ov.get(k, 0.0)) for k in MIX_FIELDS}
+    if "hard_start_x" in ov:
+        mix["hard_start_x"] = tuple(ov["hard_start_x"])
+    return mix
+
+
 class AuxiliaryLosses:
     """The optional terms added to the PPO loss of every minibatch (``loss.bc``, ``loss.residual_coeff``).
 
@@ -95,7 +111,8 @@ class AuxiliaryLosses:
         if b is not None and b.coeff > 0:
             from mixed_traffic.intersection.demos import load_or_make
 
-            self.demo = load_or_make(b.demos, expert=b.expert, episodes=b.episodes, seed=int(cfg.seed))
+            self.demo = load_or_make(b.demos, expert=b.expert, episodes=b.episodes, seed=int(cfg.seed),
+                                     mix=demo_agent_mix(cfg))
             self.c0, self.c1 = float(b.coeff), float(b.coeff if b.final_coeff is None else b.final_coeff)
             self.bc = BCLoss(actor)
             if pretrain and b.pretrain_steps:

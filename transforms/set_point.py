@@ -1,0 +1,105 @@
+"""The policy chooses a speed controller's set point; the controller turns it into the acceleration.
+
+A residual on the *acceleration* of FollowerStopper cannot move the speed it settles at:
+FollowerStopper commands ``(v_cmd - v) / dt``, a gain of 10 s^-1 at ``dt = 0.1`` s, so a bounded
+residual of 0.5 m/s^2 shifts its steady speed by 0.05 m/s. What decides whether one car
+dissolves a ring's wave is the set point ``U`` (too high and the car follows the wave, too low
+and the ring runs slower than it could), and the best ``U`` changes with the ring (measured in
+``docs/wave.md``). :class:`SetPointAction` lets the policy act on that: it outputs
+``a in [-1, 1]`` per CAV and the controller tracks ``U = U_ref * (ratio0 + weight * a)``.
+TorchRL's action transforms map actions elementwise; this one runs a controller on the state.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+
+class SetPointAction(Transform):
+    """Executes ``controller(state, U = U_ref * (ratio0 + weight * a))``; the policy outputs ``a`` in [-1, 1].
+
+    Args:
+        controller: a set-point speed controller with ``set_point(ring_length) -> U_ref`` and
+            ``command(gap, speed, leader_speed, U) -> v_cmd`` plus ``dt``, ``low``, ``high``
+            (:class:`~mixed_traffic.controllers.dampers.FollowerStopper` with ``u_ratio=1``).
+        ratio0: the set point's ratio to ``U_ref`` at ``a = 0`` (> 0, default 0.9).
+        weight: the ratio moves by ``weight * a`` (>= 0, default 0.1).
+        action_key: the policy's action (replaced by the executed acceleration).
+        gap_key, speed_key, leader_speed_key, ring_length_key: the state entries read.
+        ratio_key: where the ratio used is logged (in ``"next"``).
+
+    Example:
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.controllers.dampers import make_damper
+        >>> from torchrl.envs import TransformedEnv
+        >>> from transforms import SetPointAction
+        >>> base = make_env("ring_wave", batch_size=2, seed=0, ring_length=230.0)
+        >>> env = TransformedEnv(base, SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.9))
+        >>> td = env.rollout(3, lambda td: td.set("action", torch.ones(2, 1)))
+        >>> [round(float(r), 2) for r in td["next", "set_point", "ratio"][0, :, 0]]
+        [1.0, 1.0, 1.0]
+    """
+
+    def __init__(self, controller: nn.Module, *, ratio0: float = 0.9, weight: float = 0.1,
+                 action_key: NestedKey = "action", gap_key: NestedKey = ("cav", "gap"),
+                 speed_key: NestedKey = ("cav", "speed"), leader_speed_key: NestedKey = ("cav", "leader_speed"),
+                 ring_length_key: NestedKey = ("traffic", "ring_length"),
+                 ratio_key: NestedKey = ("set_point", "ratio")):
+        if not ratio0 > 0:
+            raise ValueError(f"SetPointAction: ratio0={ratio0!r} is invalid; allowed: > 0")
+        if not 0 <= weight < ratio0:
+            raise ValueError(f"SetPointAction: weight={weight!r} is invalid; allowed: 0 <= weight < ratio0 "
+                             f"({ratio0}), so the set point stays > 0")
+        for name in ("set_point", "command", "dt", "low", "high"):
+            if not hasattr(controller, name):
+                raise ValueError(f"SetPointAction: controller {type(controller).__name__} has no {name!r}; allowed: "
+                                 "a set-point controller such as dampers.FollowerStopper")
+        super().__init__(in_keys=[], out_keys=[ratio_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.controller, self.ratio0, self.weight = controller, float(ratio0), float(weight)
+        self.action_key, self.ratio_key = action_key, ratio_key
+        self.state_keys = (gap_key, speed_key, leader_speed_key)
+        self.ring_length_key = ring_length_key
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a = tensordict.get(self.action_key)
+        gap, speed, leader = (tensordict.get(k) for k in self.state_keys)
+        ratio = self.ratio0 + self.weight * a.clamp(-1.0, 1.0).reshape(speed.shape).double()
+        c = self.controller
+        U = (c.set_point(tensordict.get(self.ring_length_key).double()).expand_as(speed) * ratio).to(speed.dtype)
+        v_cmd = c.command(gap, speed, leader, U)
+        executed = ((v_cmd - speed) / c.dt).clamp(c.low, c.high)
+        tensordict.set(self.action_key, executed.to(a.dtype).reshape(a.shape))
+        tensordict.set(self.ratio_key, ratio.to(a.dtype).reshape(a.shape))
+        return tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        val = tensordict.get(self.ratio_key, None)
+        if val is not None:
+            next_tensordict.set(self.ratio_key, val)
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        spec = self.parent.full_action_spec[self.action_key]
+        tensordict_reset.set(self.ratio_key, torch.full(spec.shape, self.ratio0, dtype=spec.dtype, device=spec.device))
+        return tensordict_reset
+
+    def transform_action_spec(self, action_spec):
+        spec = action_spec[self.action_key] if isinstance(action_spec, Composite) else action_spec
+        new = Bounded(low=-1.0, high=1.0, shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        if isinstance(action_spec, Composite):
+            action_spec[self.action_key] = new
+            return action_spec
+        return new
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec = self.parent.full_action_spec[self.action_key]
+        observation_spec[self.ratio_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        return observation_spec
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(ratio0={self.ratio0}, weight={self.weight}, controller={type(self.controller).__name__})"
