@@ -168,11 +168,15 @@ class SetPointConfig:
     """``set_point`` in the chain: the policy sets FollowerStopper's set point, ``U = U_uniform (ratio0 + weight a)``.
 
     ``a`` in [-1, 1] per CAV (:class:`transforms.SetPointAction`); ``U_uniform`` is the ring's
-    uniform-flow speed (the humans' IDM at spacing ``L / n``).
+    uniform-flow speed (the humans' IDM at spacing ``L / n``). With ``rate`` set, the action
+    moves the ratio instead, ``ratio += rate a`` per step within ``[low, high]`` from ``ratio0``.
     """
 
     ratio0: float = 0.9
     weight: float = 0.1
+    rate: float | None = None  # set: the action is the ratio's rate of change per step (ratio kept in [low, high])
+    low: float = 0.8
+    high: float = 1.05
 
 
 @dataclass

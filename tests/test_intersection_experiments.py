@@ -114,6 +114,30 @@ def test_hard_start_bank_and_conflict_cost():
     assert anticipation_cost(going).item() > 0 and anticipation_cost(waiting).item() == 0
 
 
+def test_bc_demonstrations_can_use_the_training_banks_agents():
+    from mixed_traffic.config import compose
+    from mixed_traffic.envs.intersection import agent_bank
+    from mixed_traffic.envs.intersection_agents import sample_agent_trajectories
+    from mixed_traffic.intersection.demos import default_path, nmpc_demonstrations
+    from mixed_traffic.training.on_policy import demo_agent_mix
+
+    # without shares the bank is the mixed-style one the demonstrations always used (same cache name)
+    a, b = agent_bank(16, seed=10_000, split="train"), sample_agent_trajectories(16, seed=10_000, split="train")
+    assert torch.equal(a.true, b.true) and torch.equal(a.behaviour, b.behaviour)
+    assert default_path("nmpc", 0, 384).name == "nmpc_seed0_n384.pt"
+    cfg = compose(["experiment=intersection_lppo_bc"])
+    mix = demo_agent_mix(cfg)
+    assert mix["pause_fraction"] == 0.25 and mix["reactive_fraction"] == 0.25 and mix["hard_start_fraction"] == 0.3
+    assert default_path("nmpc", 0, 384, mix).name == "nmpc_seed0_n384_h0.3-r0.25-p0.25.pt"
+    bank = agent_bank(40, seed=3, split="train", **mix)
+    assert int(bank.reactive.sum()) == 10  # a quarter of the bank reacts to the ego
+    demo = nmpc_demonstrations(2, seed=0, batch=2, progress=False, mix=mix)
+    assert demo["expert_action"].shape[-1] == 1 and demo.shape[0] > 0
+    cfg.loss.bc.agents = "everyone"
+    with pytest.raises(ValueError, match="loss.bc.agents"):
+        demo_agent_mix(cfg)
+
+
 def test_ego_caused_conflict_cost_never_charges_waiting_or_reversing():
     from torchrl.envs import TransformedEnv
 

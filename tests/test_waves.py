@@ -302,6 +302,15 @@ def test_set_point_action_is_follower_stopper_at_the_chosen_ratio():
         SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.5, weight=0.6)
     with pytest.raises(ValueError, match="set_point"):
         SetPointAction(torch.nn.Linear(1, 1))
+    # rate mode: the action moves the ratio in force, which stays in [low, high]
+    env = TransformedEnv(base, SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.9, rate=0.04,
+                                              low=0.8, high=1.0))
+    up = env.rollout(5, lambda td: td.set("action", torch.ones(2, 1)))["next", "set_point", "ratio"][0, :, 0]
+    assert up.tolist() == pytest.approx([0.94, 0.98, 1.0, 1.0, 1.0])
+    down = env.rollout(4, lambda td: td.set("action", -torch.ones(2, 1)))["next", "set_point", "ratio"][0, :, 0]
+    assert down.tolist() == pytest.approx([0.86, 0.82, 0.8, 0.8])
+    with pytest.raises(ValueError, match="rate"):
+        SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.9, rate=0.01, low=0.95)
 
 
 def test_wave_controllers_take_arguments_and_name_bad_ones():

@@ -29,6 +29,11 @@ class SetPointAction(Transform):
             (:class:`~mixed_traffic.controllers.dampers.FollowerStopper` with ``u_ratio=1``).
         ratio0: the set point's ratio to ``U_ref`` at ``a = 0`` (> 0, default 0.9).
         weight: the ratio moves by ``weight * a`` (>= 0, default 0.1).
+        rate: if set (> 0), the action is the ratio's rate of change instead: each step
+            ``ratio = clip(ratio + rate * a, low, high)``, from ``ratio0`` at reset. A held set
+            point then needs no held action, and the policy's per-step exploration noise adds
+            up to slow, persistent excursions of the set point (what shows its effect on a ring).
+        low, high: the ratio's range in ``rate`` mode (default 0.8, 1.05).
         action_key: the policy's action (replaced by the executed acceleration).
         gap_key, speed_key, leader_speed_key, ring_length_key: the state entries read.
         ratio_key: where the ratio used is logged (in ``"next"``).
@@ -46,7 +51,7 @@ class SetPointAction(Transform):
     """
 
     def __init__(self, controller: nn.Module, *, ratio0: float = 0.9, weight: float = 0.1,
-                 action_key: NestedKey = "action", gap_key: NestedKey = ("cav", "gap"),
+                 rate: float | None = None, low: float = 0.8, high: float = 1.05, action_key: NestedKey = "action", gap_key: NestedKey = ("cav", "gap"),
                  speed_key: NestedKey = ("cav", "speed"), leader_speed_key: NestedKey = ("cav", "leader_speed"),
                  ring_length_key: NestedKey = ("traffic", "ring_length"),
                  ratio_key: NestedKey = ("set_point", "ratio")):
@@ -55,12 +60,17 @@ class SetPointAction(Transform):
         if not 0 <= weight < ratio0:
             raise ValueError(f"SetPointAction: weight={weight!r} is invalid; allowed: 0 <= weight < ratio0 "
                              f"({ratio0}), so the set point stays > 0")
+        if rate is not None and not (rate > 0 and 0 < low <= ratio0 <= high):
+            raise ValueError(f"SetPointAction: rate={rate!r}, low={low!r}, ratio0={ratio0!r}, high={high!r} are invalid; "
+                             "allowed: rate > 0 and 0 < low <= ratio0 <= high")
         for name in ("set_point", "command", "dt", "low", "high"):
             if not hasattr(controller, name):
                 raise ValueError(f"SetPointAction: controller {type(controller).__name__} has no {name!r}; allowed: "
                                  "a set-point controller such as dampers.FollowerStopper")
         super().__init__(in_keys=[], out_keys=[ratio_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.controller, self.ratio0, self.weight = controller, float(ratio0), float(weight)
+        self.rate = None if rate is None else float(rate)
+        self.low, self.high = float(low), float(high)
         self.action_key, self.ratio_key = action_key, ratio_key
         self.state_keys = (gap_key, speed_key, leader_speed_key)
         self.ring_length_key = ring_length_key
@@ -68,13 +78,19 @@ class SetPointAction(Transform):
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = tensordict.get(self.action_key)
         gap, speed, leader = (tensordict.get(k) for k in self.state_keys)
-        ratio = self.ratio0 + self.weight * a.clamp(-1.0, 1.0).reshape(speed.shape).double()
+        a = a.clamp(-1.0, 1.0).reshape(speed.shape).double()
+        if self.rate is None:
+            ratio = self.ratio0 + self.weight * a
+        else:  # the ratio in force (the observation's entry) moved by rate * a
+            ratio = (tensordict.get(self.ratio_key).reshape(speed.shape).double() + self.rate * a).clamp(self.low,
+                                                                                                          self.high)
         c = self.controller
         U = (c.set_point(tensordict.get(self.ring_length_key).double()).expand_as(speed) * ratio).to(speed.dtype)
         v_cmd = c.command(gap, speed, leader, U)
         executed = ((v_cmd - speed) / c.dt).clamp(c.low, c.high)
-        tensordict.set(self.action_key, executed.to(a.dtype).reshape(a.shape))
-        tensordict.set(self.ratio_key, ratio.to(a.dtype).reshape(a.shape))
+        shape, dtype = tensordict.get(self.action_key).shape, tensordict.get(self.action_key).dtype
+        tensordict.set(self.action_key, executed.to(dtype).reshape(shape))
+        tensordict.set(self.ratio_key, ratio.to(dtype).reshape(shape))
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -102,4 +118,5 @@ class SetPointAction(Transform):
         return observation_spec
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(ratio0={self.ratio0}, weight={self.weight}, controller={type(self.controller).__name__})"
+        mode = f"rate={self.rate}, low={self.low}, high={self.high}" if self.rate else f"weight={self.weight}"
+        return f"{type(self).__name__}(ratio0={self.ratio0}, {mode}, controller={type(self.controller).__name__})"

@@ -78,7 +78,8 @@ def _set_point(tcfg, env):
     from transforms import SetPointAction
 
     c = tcfg.set_point
-    return SetPointAction(make_damper("follower_stopper", env).module, ratio0=c.ratio0, weight=c.weight)
+    return SetPointAction(make_damper("follower_stopper", env).module, ratio0=c.ratio0, weight=c.weight, rate=c.rate,
+                          low=c.low, high=c.high)
 
 
 def _intervention_cost(tcfg, env):
