@@ -30,6 +30,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import per_row, profile_table
+
 
 class CounterfactualReward(Transform):
     """``r = max(0, offset + (J_twin - J) / (scale J_ref[p]))``: the step's cost against a base-controller twin's.
@@ -67,19 +69,16 @@ class CounterfactualReward(Transform):
                  collision_reward: float = -1.0, action_key: NestedKey = "action",
                  j_key: NestedKey = ("traffic", "J"), kind_key: NestedKey = ("deeplcc", "kind"),
                  collision_key: NestedKey = "collision", reward_key: NestedKey = "reward"):
-        kinds = list(kinds)
-        bad = {k: v for k, v in dict(J_ref).items() if k not in kinds or not float(v) > 0}
-        if not J_ref or bad:
-            raise ValueError(f"CounterfactualReward: J_ref={dict(J_ref)!r} is invalid; allowed: a non-empty mapping "
-                             f"from profile names in {kinds} to values > 0 (bad: {bad})")
+        table = profile_table("CounterfactualReward", "J_ref", J_ref, kinds)
         if not scale > 0:
             raise ValueError(f"CounterfactualReward: scale={scale!r} is invalid; allowed: > 0")
         if not offset >= 0:
             raise ValueError(f"CounterfactualReward: offset={offset!r} is invalid; allowed: >= 0")
         super().__init__(in_keys=[j_key, kind_key, collision_key], out_keys=[reward_key])
         self.base = base
-        self.register_buffer("J_ref_table", torch.tensor([float(J_ref.get(k, float("nan"))) for k in kinds]))
-        self.kinds, self.scale, self.offset = kinds, float(scale), float(offset)
+        self.register_buffer("J_ref_table", table)
+        self.kinds = list(kinds)
+        self.scale, self.offset = float(scale), float(offset)
         self.collision_reward = float(collision_reward)
         self.action_key, self.j_key, self.kind_key = action_key, j_key, kind_key
         self.collision_key, self.reward_key = collision_key, reward_key
@@ -124,11 +123,7 @@ class CounterfactualReward(Transform):
             j_twin = twin.replay_step(u.detach().cpu(), self._rng_state)
         self._rng_state = None
         j = next_tensordict.get(self.j_key)
-        kind = next_tensordict.get(self.kind_key).long()
-        j_ref = self.J_ref_table[kind.cpu()]
-        if torch.isnan(j_ref).any():
-            missing = sorted({self.kinds[int(k)] for k in kind.cpu()[torch.isnan(j_ref)].flatten().tolist()})
-            raise ValueError(f"CounterfactualReward: no J_ref for profile(s) {missing}")
+        j_ref = per_row(self.J_ref_table, next_tensordict.get(self.kind_key), self.kinds, "CounterfactualReward", "J_ref")
         j_twin = j_twin.to(j.dtype).to(j.device).reshape(j.shape)
         r = self.offset + (j_twin - j) / (self.scale * j_ref.to(j.device, j.dtype).reshape(j.shape))
         if self.offset > 0:

@@ -10,8 +10,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
+
+from transforms.specs import with_action_shaped_entry, with_bounded_action
 
 
 class ResidualAction(Transform):
@@ -112,20 +114,10 @@ class ResidualAction(Transform):
     def transform_action_spec(self, action_spec):
         if self.policy_bounds is None:
             return action_spec
-        lo, hi = self.policy_bounds
-        spec = action_spec[self.action_key] if isinstance(action_spec, Composite) else action_spec
-        new = Bounded(low=torch.full(spec.shape, lo, dtype=spec.dtype, device=spec.device),
-                      high=torch.full(spec.shape, hi, dtype=spec.dtype, device=spec.device),
-                      shape=spec.shape, dtype=spec.dtype, device=spec.device)
-        if isinstance(action_spec, Composite):
-            action_spec[self.action_key] = new
-            return action_spec
-        return new
+        return with_bounded_action(action_spec, self.action_key, *self.policy_bounds)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        spec = self.parent.full_action_spec[self.action_key]
-        observation_spec[self.base_action_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
-        return observation_spec
+        return with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.base_action_key)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(weight={self.weight}, base={type(self.base).__name__})"

@@ -17,6 +17,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import per_row, profile_table
+
 
 class _StageCostReward(Transform):
     def __init__(self, J_max: float | None, j_key: NestedKey, collision_key: NestedKey, reward_key: NestedKey):
@@ -169,26 +171,16 @@ class ProfileNormalisedReward(NonNegativeReward):
     def __init__(self, J_max: dict, *, kinds, kind_key: NestedKey = ("deeplcc", "kind"),
                  collision_reward: float = -1.0, j_key: NestedKey = ("traffic", "J"),
                  collision_key: NestedKey = "collision", reward_key: NestedKey = "reward"):
-        kinds = list(kinds)
-        bad = {k: v for k, v in dict(J_max).items() if k not in kinds or not float(v) > 0}
-        if not J_max or bad:
-            raise ValueError(f"ProfileNormalisedReward: J_max={dict(J_max)!r} is invalid; allowed: a non-empty "
-                             f"mapping from profile names in {kinds} to values > 0 (bad: {bad})")
+        table = profile_table("ProfileNormalisedReward", "J_max", J_max, kinds)  # NaN: a profile without J_max
         super().__init__(1.0, collision_reward=collision_reward, j_key=j_key, collision_key=collision_key,
                          reward_key=reward_key)
-        # NaN for a profile without a J_max: a row that draws it fails loudly in _reward
-        table = torch.tensor([float(J_max.get(k, float("nan"))) for k in kinds], dtype=torch.float32)
         self.register_buffer("J_max_table", table)
-        self.kinds, self.kind_key = kinds, kind_key
+        self.kinds, self.kind_key = list(kinds), kind_key
         self.in_keys = [*self.in_keys, kind_key]
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        kind = next_tensordict.get(self.kind_key).long()
-        j_max = self.J_max_table.to(kind.device)[kind]
-        if torch.isnan(j_max).any():
-            missing = sorted({self.kinds[int(k)] for k in kind[torch.isnan(j_max)].flatten().tolist()})
-            raise ValueError(f"ProfileNormalisedReward: no J_max for profile(s) {missing}; "
-                             f"given: {[k for k, v in zip(self.kinds, self.J_max_table.tolist()) if v == v]}")
+        j_max = per_row(self.J_max_table, next_tensordict.get(self.kind_key), self.kinds, "ProfileNormalisedReward",
+                        "J_max")
         self._row_J_max = j_max
         return super()._call(next_tensordict)
 

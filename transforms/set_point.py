@@ -16,8 +16,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
+
+from transforms.specs import with_action_shaped_entry, with_bounded_action
 
 
 class SetPointAction(Transform):
@@ -105,17 +107,10 @@ class SetPointAction(Transform):
         return tensordict_reset
 
     def transform_action_spec(self, action_spec):
-        spec = action_spec[self.action_key] if isinstance(action_spec, Composite) else action_spec
-        new = Bounded(low=-1.0, high=1.0, shape=spec.shape, dtype=spec.dtype, device=spec.device)
-        if isinstance(action_spec, Composite):
-            action_spec[self.action_key] = new
-            return action_spec
-        return new
+        return with_bounded_action(action_spec, self.action_key, -1.0, 1.0)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        spec = self.parent.full_action_spec[self.action_key]
-        observation_spec[self.ratio_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
-        return observation_spec
+        return with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.ratio_key)
 
     def __repr__(self) -> str:
         mode = f"rate={self.rate}, low={self.low}, high={self.high}" if self.rate else f"weight={self.weight}"

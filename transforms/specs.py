@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import torch
+from torchrl.data import Bounded, Composite, Unbounded
+
 
 def action_range(env) -> float:
     """Width ``high - low`` of the bounds of ``env``'s ``"action"`` (first element), in m/s^2.
@@ -11,3 +14,44 @@ def action_range(env) -> float:
     """
     spec = env.full_action_spec["action"]
     return float((spec.space.high - spec.space.low).flatten()[0])
+
+
+def with_bounded_action(action_spec, key, low: float, high: float):
+    """``action_spec`` (a ``Composite`` or a leaf) with the entry ``key`` replaced by ``Bounded(low, high)``
+    of the same shape: the action a policy outputs when a transform maps it to the env's command."""
+    spec = action_spec[key] if isinstance(action_spec, Composite) else action_spec
+    new = Bounded(low=torch.full(spec.shape, float(low), dtype=spec.dtype, device=spec.device),
+                  high=torch.full(spec.shape, float(high), dtype=spec.dtype, device=spec.device),
+                  shape=spec.shape, dtype=spec.dtype, device=spec.device)
+    if isinstance(action_spec, Composite):
+        action_spec[key] = new
+        return action_spec
+    return new
+
+
+def with_action_shaped_entry(observation_spec, parent, action_key, key):
+    """``observation_spec`` with an ``Unbounded`` entry ``key`` shaped like the parent's action (a logged command)."""
+    spec = parent.full_action_spec[action_key]
+    observation_spec[key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+    return observation_spec
+
+
+def profile_table(owner: str, field: str, values: dict, kinds) -> torch.Tensor:
+    """One value per profile name of ``kinds`` (NaN where ``values`` has none), validated: a non-empty
+    mapping from names in ``kinds`` to values > 0; ``owner`` and ``field`` name it in the error."""
+    kinds = list(kinds)
+    bad = {k: v for k, v in dict(values).items() if k not in kinds or not float(v) > 0}
+    if not values or bad:
+        raise ValueError(f"{owner}: {field}={dict(values)!r} is invalid; allowed: a non-empty mapping from profile "
+                         f"names in {kinds} to values > 0 (bad: {bad})")
+    return torch.tensor([float(values.get(k, float("nan"))) for k in kinds], dtype=torch.float32)
+
+
+def per_row(table, kind, kinds, owner: str, field: str):
+    """``table[kind]`` for a per-row profile index ``kind``; a profile without a value fails naming it."""
+    kind = kind.long().cpu()
+    out = table[kind]
+    if torch.isnan(out).any():
+        missing = sorted({list(kinds)[int(k)] for k in kind[torch.isnan(out)].flatten().tolist()})
+        raise ValueError(f"{owner}: no {field} for profile(s) {missing}")
+    return out
