@@ -208,13 +208,15 @@ class ConflictCostConfig:
 
     ``anticipation`` weighs the distance cost at the closest predicted approach over the next
     ``horizon_s`` seconds (constant velocities); ``out_of_bounds`` is charged on leaving the road;
-    ``ego_caused`` charges only the part of the predicted conflict the ego's own motion adds.
+    ``ego_caused`` charges only the part of the predicted conflict the ego's own motion adds;
+    ``margin`` (m) widens the separation the predicted approach is charged for.
     """
 
     anticipation: float = 1.0
     horizon_s: float = 1.5
     out_of_bounds: float = 150.0
     ego_caused: bool = False
+    margin: float = 0.0
 
 
 @dataclass

@@ -112,6 +112,12 @@ def test_hard_start_bank_and_conflict_cost():
     waiting = going.clone()
     waiting[0, 1] = 0.0
     assert anticipation_cost(going).item() > 0 and anticipation_cost(waiting).item() == 0
+    # a margin charges the same predicted approach more
+    assert anticipation_cost(going, margin=0.3).item() > anticipation_cost(going).item()
+    from transforms import ConflictCost
+
+    with pytest.raises(ValueError, match="margin"):
+        ConflictCost(margin=-0.1)
 
 
 def test_bc_demonstrations_can_use_the_training_banks_agents():

@@ -20,8 +20,8 @@ from torchrl.envs.transforms import Transform
 
 
 def anticipation_cost(obs: torch.Tensor, *, horizon_s: float = 1.5, dt: float = 0.1, radius: float = 0.3328,
-                      mu: float = 200.0, ego_x: float = 0.5) -> torch.Tensor:
-    """``mu max(0, (2R + |sigma|)^2 - d_min^2)``, ``d_min`` the closest approach over ``horizon_s``.
+                      mu: float = 200.0, ego_x: float = 0.5, margin: float = 0.0) -> torch.Tensor:
+    """``mu max(0, (2R + margin + |sigma|)^2 - d_min^2)``, ``d_min`` the closest approach over ``horizon_s``.
 
     Ego and perceived agent both keep their current velocities; ``obs`` is the intersection
     observation ``[..., 8]``; returns ``[..., 1]``.
@@ -35,7 +35,7 @@ def anticipation_cost(obs: torch.Tensor, *, horizon_s: float = 1.5, dt: float = 
     xa, ya, vxa, vya = obs[..., 2:3], obs[..., 3:4], obs[..., 4:5], obs[..., 5:6]
     d2 = (ego_x - (xa + vxa * tau)) ** 2 + ((y + v * tau) - (ya + vya * tau)) ** 2
     sig = obs[..., 6:8].norm(dim=-1, keepdim=True)
-    return mu * torch.clamp((2 * radius + sig) ** 2 - d2.min(dim=-1, keepdim=True).values, min=0.0)
+    return mu * torch.clamp((2 * radius + margin + sig) ** 2 - d2.min(dim=-1, keepdim=True).values, min=0.0)
 
 
 def ego_caused_anticipation_cost(obs: torch.Tensor, **kw) -> torch.Tensor:
@@ -60,6 +60,8 @@ class ConflictCost(Transform):
         out_of_bounds: cost of the step that leaves the road (>= 0).
         ego_caused: charge only the part of the predicted conflict the ego's velocity adds
             (:func:`ego_caused_anticipation_cost`) instead of all of it.
+        margin: extra separation (m, >= 0) the predicted approach is charged for, on top of the
+            two radii and the perception error.
 
     Example:
         >>> from mixed_traffic import make_env
@@ -70,13 +72,14 @@ class ConflictCost(Transform):
     """
 
     def __init__(self, anticipation: float = 1.0, horizon_s: float = 1.5, out_of_bounds: float = 150.0, *,
-                 ego_caused: bool = False, cost_key: NestedKey = "cost"):
-        for name, v in (("anticipation", anticipation), ("horizon_s", horizon_s), ("out_of_bounds", out_of_bounds)):
+                 ego_caused: bool = False, margin: float = 0.0, cost_key: NestedKey = "cost"):
+        for name, v in (("anticipation", anticipation), ("horizon_s", horizon_s), ("out_of_bounds", out_of_bounds),
+                        ("margin", margin)):
             if not v >= 0:
                 raise ValueError(f"ConflictCost: {name}={v!r} is invalid; allowed: >= 0")
         super().__init__(in_keys=["observation", cost_key], out_keys=[cost_key])
         self.anticipation, self.horizon_s, self.out_of_bounds = float(anticipation), float(horizon_s), float(out_of_bounds)
-        self.cost_key, self.ego_caused = cost_key, bool(ego_caused)
+        self.cost_key, self.ego_caused, self.margin = cost_key, bool(ego_caused), float(margin)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         cost = next_tensordict.get(self.cost_key)
@@ -85,7 +88,7 @@ class ConflictCost(Transform):
             alive = ~next_tensordict.get("done").reshape(cost.shape)
             fn = ego_caused_anticipation_cost if self.ego_caused else anticipation_cost
             extra = extra + self.anticipation * fn(next_tensordict.get("observation"),
-                                                   horizon_s=self.horizon_s).to(cost) * alive
+                                                   horizon_s=self.horizon_s, margin=self.margin).to(cost) * alive
         oob = next_tensordict.get("out_of_bounds", None)
         if self.out_of_bounds > 0 and oob is not None:
             extra = extra + self.out_of_bounds * oob.reshape(cost.shape).to(cost.dtype)
@@ -97,4 +100,4 @@ class ConflictCost(Transform):
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(anticipation={self.anticipation}, out_of_bounds={self.out_of_bounds}, "
-                f"ego_caused={self.ego_caused})")
+                f"ego_caused={self.ego_caused}, margin={self.margin})")

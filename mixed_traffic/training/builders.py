@@ -133,7 +133,7 @@ def _conflict_cost(tcfg, env):
 
     c = tcfg.conflict_cost
     return ConflictCost(anticipation=c.anticipation, horizon_s=c.horizon_s, out_of_bounds=c.out_of_bounds,
-                        ego_caused=c.ego_caused)
+                        ego_caused=c.ego_caused, margin=c.margin)
 
 
 # name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
