@@ -135,6 +135,8 @@ def test_bc_demonstrations_can_use_the_training_banks_agents():
     mix = demo_agent_mix(cfg)
     assert mix["pause_fraction"] == 0.25 and mix["reactive_fraction"] == 0.25 and mix["hard_start_fraction"] == 0.3
     assert default_path("nmpc", 0, 384, mix).name == "nmpc_seed0_n384_h0.3-r0.25-p0.25.pt"
+    # another close-start range is another bank: another cache file
+    assert default_path("nmpc", 0, 384, {**mix, "hard_start_x": (2.0, 2.4)}).name != default_path("nmpc", 0, 384, mix).name
     bank = agent_bank(40, seed=3, split="train", **mix)
     assert int(bank.reactive.sum()) == 10  # a quarter of the bank reacts to the ego
     demo = nmpc_demonstrations(2, seed=0, batch=2, progress=False, mix=mix)

@@ -28,12 +28,12 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
-from torchrl.envs.transforms import Transform
 
+from transforms.rewards import _StageCostReward
 from transforms.specs import per_row, profile_table
 
 
-class CounterfactualReward(Transform):
+class CounterfactualReward(_StageCostReward):
     """``r = max(0, offset + (J_twin - J) / (scale J_ref[p]))``: the step's cost against a base-controller twin's.
 
     Args:
@@ -74,14 +74,13 @@ class CounterfactualReward(Transform):
             raise ValueError(f"CounterfactualReward: scale={scale!r} is invalid; allowed: > 0")
         if not offset >= 0:
             raise ValueError(f"CounterfactualReward: offset={offset!r} is invalid; allowed: >= 0")
-        super().__init__(in_keys=[j_key, kind_key, collision_key], out_keys=[reward_key])
+        super().__init__(None, j_key, collision_key, reward_key, collision_reward=float(collision_reward))
+        self.in_keys = [*self.in_keys, kind_key]
         self.base = base
         self.register_buffer("J_ref_table", table)
         self.kinds = list(kinds)
         self.scale, self.offset = float(scale), float(offset)
-        self.collision_reward = float(collision_reward)
-        self.action_key, self.j_key, self.kind_key = action_key, j_key, kind_key
-        self.collision_key, self.reward_key = collision_key, reward_key
+        self.action_key, self.kind_key = action_key, kind_key
         self._twin = None
         self._rng_state = None
 
@@ -109,7 +108,8 @@ class CounterfactualReward(Transform):
         self._rng_state = self._sim().rng.get_state()
         return tensordict
 
-    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+    def _reward(self, j: torch.Tensor, next_tensordict: TensorDictBase) -> torch.Tensor:
+        """Step the twin with the base controller on this step's noise; the scaled cost difference."""
         if self._rng_state is None:
             raise RuntimeError("CounterfactualReward: the step did not pass through the transform's inverse; "
                                "step the TransformedEnv, not its base env")
@@ -122,21 +122,11 @@ class CounterfactualReward(Transform):
             u = self.base(td).get(self.action_key)
             j_twin = twin.replay_step(u.detach().cpu(), self._rng_state)
         self._rng_state = None
-        j = next_tensordict.get(self.j_key)
         j_ref = per_row(self.J_ref_table, next_tensordict.get(self.kind_key), self.kinds, "CounterfactualReward", "J_ref")
         j_twin = j_twin.to(j.dtype).to(j.device).reshape(j.shape)
-        r = self.offset + (j_twin - j) / (self.scale * j_ref.to(j.device, j.dtype).reshape(j.shape))
-        if self.offset > 0:
-            r = r.clamp_min(0.0)
-        collision = next_tensordict.get(self.collision_key, None)
-        if collision is not None:
-            r = torch.where(collision.reshape(r.shape), torch.full_like(r, self.collision_reward), r)
-        old = next_tensordict.get(self.reward_key, None)
-        if old is not None:
-            r = r.to(old.dtype).reshape(old.shape)
-        next_tensordict.set(self.reward_key, r)
         next_tensordict.set(("traffic", "J_twin"), j_twin.to(torch.float32))
-        return next_tensordict
+        r = self.offset + (j_twin - j) / (self.scale * j_ref.to(j.device, j.dtype).reshape(j.shape))
+        return r.clamp_min(0.0) if self.offset > 0 else r
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError("CounterfactualReward: needs the live env (the twin replays it); it cannot "

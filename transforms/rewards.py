@@ -21,12 +21,17 @@ from transforms.specs import per_row, profile_table
 
 
 class _StageCostReward(Transform):
-    def __init__(self, J_max: float | None, j_key: NestedKey, collision_key: NestedKey, reward_key: NestedKey):
+    """A reward computed from the step's stage cost ``J`` (subclasses: :meth:`_reward`); a step that
+    ends in a collision gets ``collision_reward`` instead, unless that is None."""
+
+    def __init__(self, J_max: float | None, j_key: NestedKey, collision_key: NestedKey, reward_key: NestedKey,
+                 collision_reward: float | None = None):
         if J_max is not None and not J_max > 0:
             raise ValueError(f"{type(self).__name__}: J_max={J_max!r} is invalid; allowed: > 0 or None (read from the env)")
         super().__init__(in_keys=[j_key, collision_key], out_keys=[reward_key])
         self._J_max = J_max
         self.j_key, self.collision_key, self.reward_key = j_key, collision_key, reward_key
+        self.collision_reward = None if collision_reward is None else float(collision_reward)
 
     @property
     def J_max(self) -> float:
@@ -38,13 +43,15 @@ class _StageCostReward(Transform):
             self._J_max = float(j_max)
         return self._J_max
 
-    def _reward(self, j: torch.Tensor, collision: torch.Tensor | None) -> torch.Tensor:
+    def _reward(self, j: torch.Tensor, next_tensordict: TensorDictBase) -> torch.Tensor:
         raise NotImplementedError
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         j = next_tensordict.get(self.j_key)
+        reward = self._reward(j, next_tensordict)
         collision = next_tensordict.get(self.collision_key, None)
-        reward = self._reward(j, collision)
+        if self.collision_reward is not None and collision is not None:
+            reward = torch.where(collision.reshape(reward.shape), torch.full_like(reward, self.collision_reward), reward)
         old = next_tensordict.get(self.reward_key, None)
         if old is not None:
             reward = reward.to(old.dtype).reshape(old.shape)
@@ -80,14 +87,16 @@ class NonNegativeReward(_StageCostReward):
     def __init__(self, J_max: float | None = None, *, collision_reward: float = -1.0,
                  j_key: NestedKey = ("traffic", "J"), collision_key: NestedKey = "collision",
                  reward_key: NestedKey = "reward"):
-        super().__init__(J_max, j_key, collision_key, reward_key)
-        self.collision_reward = float(collision_reward)
+        super().__init__(J_max, j_key, collision_key, reward_key, collision_reward=float(collision_reward))
 
-    def _reward(self, j, collision):
-        r = (self.J_max - j).clamp_min(0.0) / self.J_max
-        if collision is not None:
-            r = torch.where(collision.reshape(r.shape), torch.full_like(r, self.collision_reward), r)
-        return r
+    def _j_max(self, next_tensordict: TensorDictBase) -> torch.Tensor | float:
+        return self.J_max
+
+    def _reward(self, j, next_tensordict):
+        j_max = self._j_max(next_tensordict)
+        if isinstance(j_max, torch.Tensor):
+            j_max = j_max.reshape(j.shape).to(j.dtype)
+        return (j_max - j).clamp_min(0.0) / j_max
 
     def transform_reward_spec(self, reward_spec: Composite) -> Composite:
         old = reward_spec[self.reward_key]
@@ -122,16 +131,12 @@ class QuadraticReward(_StageCostReward):
                  collision_key: NestedKey = "collision", reward_key: NestedKey = "reward"):
         if not scale > 0:
             raise ValueError(f"QuadraticReward: scale={scale!r} is invalid; allowed: > 0")
-        super().__init__(J_max, j_key, collision_key, reward_key)
-        self.scale, self.normalize, self.collision_reward = float(scale), bool(normalize), collision_reward
+        super().__init__(J_max, j_key, collision_key, reward_key, collision_reward=collision_reward)
+        self.scale, self.normalize = float(scale), bool(normalize)
 
-    def _reward(self, j, collision):
+    def _reward(self, j, next_tensordict):
         r = -self.scale * j
-        if self.normalize:
-            r = r / self.J_max
-        if self.collision_reward is not None and collision is not None:
-            r = torch.where(collision.reshape(r.shape), torch.full_like(r, float(self.collision_reward)), r)
-        return r
+        return r / self.J_max if self.normalize else r
 
     def transform_reward_spec(self, reward_spec: Composite) -> Composite:
         old = reward_spec[self.reward_key]
@@ -178,15 +183,6 @@ class ProfileNormalisedReward(NonNegativeReward):
         self.kinds, self.kind_key = list(kinds), kind_key
         self.in_keys = [*self.in_keys, kind_key]
 
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        j_max = per_row(self.J_max_table, next_tensordict.get(self.kind_key), self.kinds, "ProfileNormalisedReward",
-                        "J_max")
-        self._row_J_max = j_max
-        return super()._call(next_tensordict)
-
-    def _reward(self, j, collision):
-        j_max = self._row_J_max.reshape(j.shape).to(j.dtype)
-        r = (j_max - j).clamp_min(0.0) / j_max
-        if collision is not None:
-            r = torch.where(collision.reshape(r.shape), torch.full_like(r, self.collision_reward), r)
-        return r
+    def _j_max(self, next_tensordict: TensorDictBase) -> torch.Tensor:
+        return per_row(self.J_max_table, next_tensordict.get(self.kind_key), self.kinds, "ProfileNormalisedReward",
+                       "J_max")

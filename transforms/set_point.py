@@ -78,9 +78,9 @@ class SetPointAction(Transform):
         self.ring_length_key = ring_length_key
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        a = tensordict.get(self.action_key)
+        action = tensordict.get(self.action_key)
         gap, speed, leader = (tensordict.get(k) for k in self.state_keys)
-        a = a.clamp(-1.0, 1.0).reshape(speed.shape).double()
+        a = action.clamp(-1.0, 1.0).reshape(speed.shape).double()
         if self.rate is None:
             ratio = self.ratio0 + self.weight * a
         else:  # the ratio in force (the observation's entry) moved by rate * a
@@ -90,9 +90,8 @@ class SetPointAction(Transform):
         U = (c.set_point(tensordict.get(self.ring_length_key).double()).expand_as(speed) * ratio).to(speed.dtype)
         v_cmd = c.command(gap, speed, leader, U)
         executed = ((v_cmd - speed) / c.dt).clamp(c.low, c.high)
-        shape, dtype = tensordict.get(self.action_key).shape, tensordict.get(self.action_key).dtype
-        tensordict.set(self.action_key, executed.to(dtype).reshape(shape))
-        tensordict.set(self.ratio_key, ratio.to(dtype).reshape(shape))
+        tensordict.set(self.action_key, executed.to(action.dtype).reshape(action.shape))
+        tensordict.set(self.ratio_key, ratio.to(action.dtype).reshape(action.shape))
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

@@ -94,8 +94,12 @@ class ObservationFeatures(nn.Module):
         return torch.cat(x + [e / self.extra_scale for e in extra], dim=-1)
 
 
+#: where close-start agents start (m, x0 range) unless ``hard_start_x`` says otherwise
+HARD_START_X = (2.2, 2.6)
+
+
 def agent_bank(n: int, *, seed: int, style: str = "mixed", hard_start_fraction: float = 0.0,
-               hard_start_x: tuple[float, float] = (2.2, 2.6), reactive_fraction: float = 0.0,
+               hard_start_x: tuple[float, float] = HARD_START_X, reactive_fraction: float = 0.0,
                pause_fraction: float = 0.0, **kw) -> AgentTrajectories:
     """A training bank of ``n`` agents: ``style`` agents, with the given shares replaced by close
     starts (``x0`` in ``hard_start_x``), reactive agents and pausing agents (``kw``: ``split``,
@@ -154,7 +158,7 @@ class IntersectionEnv(EnvBase):
                  max_steps: int = 500, radius: float = 0.3328, v_min: float = -1.0, v_max: float = 3.0,
                  start_noise: float = 0.0, agent_split: str = "train", agent_behaviours=None,
                  agent_bank_size: int = 2048, agent_style: str = "mixed", hard_start_fraction: float = 0.0,
-                 hard_start_x: tuple[float, float] = (2.2, 2.6), reactive_fraction: float = 0.0,
+                 hard_start_x: tuple[float, float] = HARD_START_X, reactive_fraction: float = 0.0,
                  pause_fraction: float = 0.0, random_start_fraction: float = 0.0,
                  random_start_y: tuple[float, float] = (-1.25, 0.5), random_start_v: tuple[float, float] = (0.0, 1.5),
                  agent_trajectories: AgentTrajectories | str | None = None, agent_sampling: str = "random",

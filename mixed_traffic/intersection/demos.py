@@ -22,16 +22,21 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
-from mixed_traffic.envs.intersection import IntersectionEnv, agent_bank
+from mixed_traffic.envs.intersection import HARD_START_X, IntersectionEnv, agent_bank
 from mixed_traffic.intersection.nmpc import make_nmpc_policy
 
 MIX_FIELDS = ("hard_start_fraction", "reactive_fraction", "pause_fraction")
 
 
 def default_path(expert: str, seed: int, episodes: int, mix: dict | None = None) -> Path:
+    """The cache file of a set of demonstrations; the name carries the bank's shares (and close-start
+    range when it is not the default), so demonstrations of another bank are never loaded instead."""
     tag = ""
     if mix and any(mix.get(k, 0.0) for k in MIX_FIELDS):
         tag = "_" + "-".join(f"{k[0]}{float(mix.get(k, 0.0)):g}" for k in MIX_FIELDS)
+        x = tuple(float(v) for v in mix.get("hard_start_x", HARD_START_X))
+        if x != HARD_START_X:
+            tag += f"-x{x[0]:g}-{x[1]:g}"
     return Path("outputs/demos") / f"{expert}_seed{seed}_n{episodes}{tag}.pt"
 
 
