@@ -251,6 +251,27 @@ class TransformsConfig:
 
 
 @dataclass
+class APGConfig:
+    """Analytic-policy-gradient pre-training on the differentiable torch platoon (``iterations: 0``: off).
+
+    ``iterations`` Adam steps, each on the mean over ``num_envs`` rows and ``horizon`` steps of
+    ``J / J_ref[profile] + cost_coeff * cost`` (``mixed_traffic.training.apg``).
+    """
+
+    iterations: int = 0
+    horizon: int = 50
+    num_envs: int = 64
+    lr: float = 1e-3
+    max_grad_norm: float = 1.0
+    cost_coeff: float = 10.0
+    J_ref: dict[str, float] = field(default_factory=dict)  # per profile kind; 1 where not given
+    # chain entries left out of the APG env (e.g. [safety_layer, intervention_cost]: the policy
+    # learns to keep its gaps by itself) and a gap (m) below which the CAVs' gap is priced as cost
+    without: list[str] = field(default_factory=list)
+    gap_margin: float | None = None
+
+
+@dataclass
 class WarmStartConfig:
     """Warm Start RL: before PPO, fit the actor's deterministic action to an NNMPC's (BC on its closed loop).
 
@@ -281,6 +302,7 @@ class PolicyConfig:
     log_std_max: float = 0.5
     value_bias_init: float = 0.0  # critic output bias at start (~ expected discounted return)
     warm_start: WarmStartConfig = field(default_factory=WarmStartConfig)
+    apg: APGConfig = field(default_factory=APGConfig)
     # observation features computed inside the networks: "none" or "intersection"
     # (normalised observation + ego/agent relational features, see mixed_traffic.envs.intersection)
     features: str = "none"
@@ -310,7 +332,9 @@ class BCConfig:
     expert: str = "nmpc"
     episodes: int = 384
     agents: str = "mixed"  # "mixed": mixed-style agents; "training": the env's bank shares (close starts, reactive, pausing)
-    demos: str | None = None  # None: outputs/demos/<expert>_seed<seed>_n<episodes>[_<shares>].pt
+    # NMPCConfig fields of the expert; add one with +loss.bc.expert_overrides.margin=0.25
+    expert_overrides: dict[str, Any] = field(default_factory=dict)
+    demos: str | None = None  # None: outputs/demos/<expert>_seed<seed>_n<episodes>[_<shares>][_<overrides>].pt
 
 
 @dataclass

@@ -109,3 +109,91 @@ def test_per_step_compute_times_the_network_and_the_module(nnmpc_path):
 
     t = compare.per_step_compute("nnmpc", {}, nnmpc_path, repeats=5)
     assert set(t) == {"module", "network"} and 0 < t["network"] < 1.0 and 0 < t["module"] < 1.0
+
+
+@pytest.mark.parametrize("experiment", ["deeplcc_rlmpc_apg", "ring_lagrangian_ppo"])
+def test_apg_gradient_is_the_closed_loops_own(experiment, nnmpc_path):
+    """The analytic gradient of a window's cost equals a finite difference of the same seeded closed loop."""
+    from mixed_traffic.training.apg import _j_ref, window_loss
+
+    platoon = experiment.startswith("deeplcc")
+    cfg = compose([f"experiment={experiment}", *([f"transforms.residual_nnmpc.checkpoint={nnmpc_path}", *TINY,
+                                                    "env.episode_seconds=20.0"] if platoon else [])])
+    torch.manual_seed(0)
+    actor, _ = make_actor_critic(cfg, make_transformed_env(cfg, num_envs=2, seed=0))
+    j_ref = _j_ref(cfg.policy.apg.J_ref, "policy.apg.J_ref") if platoon else None
+    names, params = zip(*[(n, p) for n, p in actor.named_parameters() if p.requires_grad], strict=True)
+    direction = [torch.randn_like(p) for p in params]
+
+    def loss_at(eps: float, grad: bool):
+        env = make_transformed_env(cfg, num_envs=3, seed=5)  # same seed: same profiles and noise draws
+        env.base_env.differentiable = grad
+        shifted = [p + eps * d for p, d in zip(params, direction, strict=True)] if eps else params
+        with torch.nn.utils.stateless._reparametrize_module(actor, dict(zip(names, shifted, strict=True))), \
+                torch.set_grad_enabled(grad), set_exploration_type(ExplorationType.DETERMINISTIC):
+            loss, _, _ = window_loss(env, actor, env.reset(), 30, j_ref, 10.0)
+        return loss
+
+    loss = loss_at(0.0, True)
+    grads = torch.autograd.grad(loss, params, allow_unused=True)  # the log-std is unused by the deterministic action
+    analytic = sum(float((g * d).sum()) for g, d in zip(grads, direction, strict=True) if g is not None)
+    eps = 1e-4
+    numeric = (float(loss_at(eps, False)) - float(loss_at(-eps, False))) / (2 * eps)
+    assert abs(analytic) > 1e-6  # the residual moves the platoon's cost ...
+    assert analytic == pytest.approx(numeric, rel=0.05)  # ... and the gradient is the closed loop's
+    if not platoon:
+        return
+    # without the flag the platoon cuts the graph at the action (what PPO's collection gets)
+    env = make_transformed_env(cfg, num_envs=3, seed=5)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.step(actor(env.reset()))["next"]
+    assert not td["traffic", "J"].requires_grad and not td["observation"].requires_grad
+
+
+def test_apg_refuses_bad_settings_naming_the_field(nnmpc_path):
+    from mixed_traffic.training.apg import apg_pretrain
+
+    cfg = compose(["experiment=deeplcc_rlmpc_apg", f"transforms.residual_nnmpc.checkpoint={nnmpc_path}", *TINY])
+    actor, _ = make_actor_critic(cfg, make_transformed_env(cfg, num_envs=2, seed=0))
+    cfg.policy.apg.J_ref = {"brakes": 1.0}
+    with pytest.raises(ValueError, match="policy.apg.J_ref.*brakes"):
+        apg_pretrain(actor, cfg, log=None)
+    cfg.policy.apg.J_ref = {}
+    cfg.policy.apg.horizon = 0
+    with pytest.raises(ValueError, match="policy.apg.horizon"):
+        apg_pretrain(actor, cfg, log=None)
+    # the intersection env is not differentiable (nor are the SUMO backends): refused by name
+    cross = compose(["experiment=intersection_lppo", "policy.apg.iterations=1", "policy.apg.num_envs=2"])
+    cross_actor, _ = make_actor_critic(cross, make_transformed_env(cross, num_envs=2, seed=0))
+    with pytest.raises(ValueError, match="policy.apg needs a differentiable torch env.*IntersectionEnv"):
+        apg_pretrain(cross_actor, cross, log=None)
+    # per-profile references are the platoon's: on the ring they are an error, not ignored
+    ring = compose(["experiment=ring_lagrangian_ppo", "policy.apg.iterations=1", "policy.apg.num_envs=2",
+                    "+policy.apg.J_ref.brake=1.0"])
+    ring_actor, _ = make_actor_critic(ring, make_transformed_env(ring, num_envs=2, seed=0))
+    with pytest.raises(ValueError, match="policy.apg.J_ref.*TrafficEnv"):
+        apg_pretrain(ring_actor, ring, log=None)
+
+
+def test_apg_alone_trains_and_saves_a_policy(tmp_path):
+    """``trainer.total_frames=0`` with ``policy.apg``: the APG-trained actor is the run's final policy."""
+    from mixed_traffic.evaluation.policies import checkpoint_config
+    from mixed_traffic.validation import ConfigError
+
+    over = ["experiment=ring_lagrangian_ppo", "policy.apg.num_envs=4", "policy.apg.horizon=5",
+            "trainer.total_frames=0", "trainer.progress=false", "eval.after_train=false"]
+    with pytest.raises(ConfigError, match="trainer.total_frames.*policy.apg.iterations"):
+        train(compose(over), out_dir=tmp_path / "none")  # no PPO and no APG: nothing would train
+    torch.manual_seed(0)
+    res = train(compose([*over, "policy.apg.iterations=3"]), out_dir=tmp_path / "apg")
+    assert res["summary"]["frames"] == 0 and (tmp_path / "apg" / "final.pt").is_file()
+    _, state = checkpoint_config(tmp_path / "apg" / "final.pt")
+    # the run's own initialisation (as train_on_policy builds it under the run's seed) ...
+    from mixed_traffic.training.on_policy import build_ppo, collector_rows
+
+    cfg = compose([*over, "policy.apg.iterations=3"])
+    torch.manual_seed(cfg.seed)
+    init = build_ppo(cfg, make_transformed_env(cfg, num_envs=collector_rows(cfg), seed=cfg.seed))[0].state_dict()
+    assert set(init) == set(state["actor"])
+    # ... is not what was saved: the APG steps moved the mean head
+    assert any(not torch.equal(v, state["actor"][k]) for k, v in init.items())

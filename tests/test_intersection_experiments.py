@@ -146,6 +146,41 @@ def test_bc_demonstrations_can_use_the_training_banks_agents():
         demo_agent_mix(cfg)
 
 
+def test_bc_expert_overrides_name_their_cache_and_fail_clearly(tmp_path):
+    from mixed_traffic.intersection.demos import default_path, load_or_make, main, nmpc_demonstrations
+
+    # another expert is another cache file: demonstrations of the default NMPC are never loaded instead
+    assert default_path("nmpc", 0, 384, None, {"margin": 0.25}).name == "nmpc_seed0_n384_margin0.25.pt"
+    assert default_path("nmpc", 0, 384, None, {}).name == default_path("nmpc", 0, 384).name
+    # the expert's field reaches the controller: a wider margin changes what it does near an agent
+    d0 = nmpc_demonstrations(2, seed=0, batch=2, progress=False)
+    d1 = nmpc_demonstrations(2, seed=0, batch=2, progress=False, expert_overrides={"margin": 0.6})
+    assert not torch.equal(d0["expert_action"][: min(len(d0), len(d1))], d1["expert_action"][: min(len(d0), len(d1))])
+    # bad fields fail before any episode runs, naming the config field or the CLI flag; nothing is written
+    with pytest.raises(ValueError, match="loss.bc.expert_overrides.*margin"):
+        load_or_make(tmp_path / "d.pt", expert="nmpc", episodes=2, seed=0, expert_overrides={"margin": -1.0})
+    with pytest.raises(ValueError, match="loss.bc.expert_overrides.*margn"):
+        load_or_make(tmp_path / "d.pt", expert="nmpc", episodes=2, seed=0, expert_overrides={"margn": 0.2})
+    assert not (tmp_path / "d.pt").exists()
+    with pytest.raises(SystemExit):
+        main(["--episodes", "2", "--out", str(tmp_path / "e.pt"), "--nmpc", "horizon=x"])
+    assert not (tmp_path / "e.pt").exists()
+
+
+def test_dagger_labels_the_drivers_states_with_the_nmpc():
+    from tensordict.nn import TensorDictModule
+
+    from mixed_traffic.intersection.demos import nmpc_demonstrations
+
+    brake = TensorDictModule(lambda obs: torch.full((*obs.shape[:-1], 1), -3.0), ["observation"], ["action"])
+    demo = nmpc_demonstrations(2, seed=0, batch=2, progress=False, driver=brake)
+    v = demo["observation"][:, 1]
+    # the driver's actions were executed: the ego starts at rest and only ever backs up ...
+    assert v.max() <= 1e-6 and v.min() < -0.5
+    # ... while the labels are the NMPC's, which drives on across the intersection
+    assert demo["expert_action"].max() > 0.5
+
+
 def test_ego_caused_conflict_cost_never_charges_waiting_or_reversing():
     from torchrl.envs import TransformedEnv
 

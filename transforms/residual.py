@@ -83,8 +83,9 @@ class ResidualAction(Transform):
         return torch.as_tensor(low).to(like), torch.as_tensor(high).to(like)
 
     def base_action(self, tensordict: TensorDictBase) -> torch.Tensor:
-        with torch.no_grad():
-            out = self.base(tensordict.clone(False))
+        # no torch.no_grad here: a differentiable base (e.g. the NNMPC) passes the gradient
+        # through to the state it reads (analytic policy gradients); a frozen one adds no parameters
+        out = self.base(tensordict.clone(False))
         return out.get(self.base_out_key)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:

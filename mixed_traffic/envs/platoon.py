@@ -355,6 +355,10 @@ class PlatoonEnv(EnvBase):
     #: the per-row simulation state: a twin holding these rows (and the same noise draws) replays them
     STATE = ("pos", "vel", "acc", "k", "head_v", "kind", "adaptive", "v_star", "w_vh", "w_v", "w_s", "w_u")
 
+    #: True: ``step`` keeps the autograd graph from the action to the state and the outputs
+    #: (analytic policy gradients, :mod:`mixed_traffic.training.apg`); False: it cuts it
+    differentiable: bool = False
+
     def make_twin(self) -> PlatoonEnv:
         """A second env of this scenario and batch size whose rows can replay this one's (:meth:`copy_rows_from`)."""
         if type(self)._physics is not PlatoonEnv._physics:
@@ -446,7 +450,7 @@ class PlatoonEnv(EnvBase):
                              "(batch, n_cav) accelerations in m/s^2")
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action: non-finite values; allowed: finite accelerations in m/s^2")
-        J, _ = self._advance(slice(None), action.detach().cpu().to(DTYPE))
+        J, _ = self._advance(slice(None), (action if self.differentiable else action.detach()).cpu().to(DTYPE))
         g = gaps(self.pos, self.cfg)
         cav_g = g[:, self._ci]
         collision = (g <= 0).any(-1, keepdim=True)

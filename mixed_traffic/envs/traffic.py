@@ -279,7 +279,8 @@ class TrafficEnv(EnvBase):
         old = self.head_hist.gather(1, slot).squeeze(-1)
         full = step >= self._window
         self.head_sum = self.head_sum + v_head - torch.where(full, old, torch.zeros_like(old))
-        self.head_hist.scatter_(1, slot, v_head.unsqueeze(-1))
+        # out of place: a differentiable rollout (analytic policy gradients) reads the old window
+        self.head_hist = self.head_hist.scatter(1, slot, v_head.unsqueeze(-1))
 
     def _gaps(self, pos: Tensor) -> Tensor:
         sc = self.scenario
@@ -292,7 +293,7 @@ class TrafficEnv(EnvBase):
         old = self.cav_hist[rows, slot]
         full = (step >= self._cav_window).unsqueeze(-1)
         self.cav_sum = self.cav_sum + v_cav - torch.where(full, old, torch.zeros_like(old))
-        self.cav_hist[rows, slot] = v_cav
+        self.cav_hist = self.cav_hist.index_put((rows, slot), v_cav)  # out of place, as head_hist
 
     def _cav_speed_avg(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._cav_window).to(self.cav_sum.dtype).unsqueeze(-1)

@@ -112,7 +112,7 @@ class AuxiliaryLosses:
             from mixed_traffic.intersection.demos import load_or_make
 
             self.demo = load_or_make(b.demos, expert=b.expert, episodes=b.episodes, seed=int(cfg.seed),
-                                     mix=demo_agent_mix(cfg))
+                                     mix=demo_agent_mix(cfg), expert_overrides=dict(b.get("expert_overrides") or {}))
             self.c0, self.c1 = float(b.coeff), float(b.coeff if b.final_coeff is None else b.final_coeff)
             self.bc = BCLoss(actor)
             if pretrain and b.pretrain_steps:
@@ -177,11 +177,17 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         from mixed_traffic.controllers.deeplcc.rlmpc import warm_start_actor
 
         warm_start_actor(actor, env, ws.nnmpc, frames=ws.frames, epochs=ws.epochs, lr=ws.lr, seed=cfg.seed)
+    if cfg.policy.get("apg") is not None and cfg.policy.apg.iterations and resume is None:
+        from mixed_traffic.training.apg import apg_pretrain
+
+        apg_pretrain(actor, cfg)
     aux = AuxiliaryLosses(cfg, actor, pretrain=resume is None)  # before the run's clock starts
     two_critics = hasattr(loss_module, "update_lambda") and loss_module.cost_critic_network is not None
     scale = float(cfg.loss.get("reward_scale", 1.0))
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
+    if tc.total_frames == 0:  # no PPO batches: e.g. a policy trained by policy.apg alone
+        n_iters = 0
     if not single:
         env.close()  # only its specs were needed; a SUMO one would hold this process's libsumo
     run = Run.start(cfg, out_dir, n_iters, fpb)
@@ -280,7 +286,7 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         collector.shutdown()
         run.close()
     summary = {"name": cfg.name, "seed": cfg.seed, "algo": cfg.loss.name, "frames": frames,
-               "iterations": it + 1, "wall_seconds": run.wall(), "completed": not stopped_early,
+               "iterations": it + 1 if n_iters else 0, "wall_seconds": run.wall(), "completed": not stopped_early,
                "final": {k: float(v) for k, v in last.items() if v is not None}}
     if not stopped_early:
         run.save_final({"model": loss_module.state_dict(), "actor": actor.state_dict(), "kind": "ppo",
