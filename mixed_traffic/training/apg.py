@@ -40,6 +40,7 @@ import time
 import torch
 from omegaconf import DictConfig
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm.auto import tqdm
 
 from mixed_traffic.envs.platoon import PROFILE_KINDS, PlatoonEnv
 
@@ -68,8 +69,8 @@ def window_loss(env, actor, td, horizon: int, j_ref: torch.Tensor | None, cost_c
     ``loss``: the mean over rows and steps of ``J / j_ref[profile] + cost_coeff * cost`` on the
     platoon (``j_ref`` per profile kind), of ``-reward + cost_coeff * cost`` on the ring
     (``j_ref=None``); with ``gap_margin`` (m) the CAVs' ``("cav", "gap")`` below it adds
-    ``cost_coeff * (gap_margin - gap) / gap_margin`` (a margin the policy keeps by itself, with
-    no layer in the chain); differentiable in the actor's parameters.
+    ``cost_coeff * (gap_margin - gap) / gap_margin`` (a margin the policy keeps by itself, not
+    left to the safety layer); differentiable in the actor's parameters.
     """
     total, steps, ended = 0.0, 0, False
     while steps < horizon and not ended:
@@ -131,7 +132,9 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     base.differentiable = True  # the platoon cuts the graph at the action unless told not to
     try:
         with set_exploration_type(ExplorationType.DETERMINISTIC):
-            for it in range(a.iterations):
+            bar = tqdm(range(a.iterations), desc="APG", unit="step",
+                       disable=not bool(cfg.trainer.get("progress", True)))
+            for it in bar:
                 cut_graph(env)
                 td = td.detach()
                 loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff,
@@ -141,6 +144,7 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
                 torch.nn.utils.clip_grad_norm_(params, a.max_grad_norm)
                 opt.step()
                 losses.append(float(loss.detach()))
+                bar.set_postfix(window_loss=f"{losses[-1]:.4f}", refresh=False)
                 if ended:  # the rows run in lockstep: a window ends where their episodes end
                     cut_graph(env)
                     td = env.reset()
