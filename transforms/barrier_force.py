@@ -39,8 +39,10 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
+
+from transforms.specs import action_shaped_full, carry_to_next, with_action_shaped_entry
 
 Tensor = torch.Tensor
 
@@ -134,20 +136,14 @@ class BarrierForce(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        val = tensordict.get(self.out_key, None)
-        if val is not None:
-            next_tensordict.set(self.out_key, val)
-        return next_tensordict
+        return carry_to_next(tensordict, next_tensordict, self.out_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        spec = self.parent.full_action_spec[self.action_key]
-        tensordict_reset.set(self.out_key, torch.zeros(spec.shape, dtype=spec.dtype, device=spec.device))
+        tensordict_reset.set(self.out_key, action_shaped_full(self.parent, self.action_key, 0.0))
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        spec = self.parent.full_action_spec[self.action_key]
-        observation_spec[self.out_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
-        return observation_spec
+        return with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.out_key)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(rho={self.rho}, K={self.K}, taus={self.taus}, delta={self.delta})"

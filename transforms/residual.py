@@ -13,7 +13,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import with_action_shaped_entry, with_bounded_action
+from transforms.specs import action_shaped_full, carry_to_next, with_action_shaped_entry, with_bounded_action
 
 
 class ResidualAction(Transform):
@@ -102,14 +102,10 @@ class ResidualAction(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        val = tensordict.get(self.base_action_key, None)
-        if val is not None:
-            next_tensordict.set(self.base_action_key, val)
-        return next_tensordict
+        return carry_to_next(tensordict, next_tensordict, self.base_action_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        spec = self.parent.full_action_spec[self.action_key]
-        tensordict_reset.set(self.base_action_key, spec.zero())
+        tensordict_reset.set(self.base_action_key, action_shaped_full(self.parent, self.action_key, 0.0))
         return tensordict_reset
 
     def transform_action_spec(self, action_spec):

@@ -57,6 +57,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import action_shaped_full, carry_to_next
+
 Tensor = torch.Tensor
 
 MODES = ("stopping", "one_step")
@@ -363,17 +365,11 @@ class SafetyLayer(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        for key in (self.clipped_key, self.delta_key):
-            val = tensordict.get(key, None)
-            if val is not None:
-                next_tensordict.set(key, val)
-        return next_tensordict
+        return carry_to_next(tensordict, next_tensordict, self.clipped_key, self.delta_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        spec = self.parent.full_action_spec[self.action_key]
-        shape = spec.shape
-        tensordict_reset.set(self.clipped_key, torch.zeros(shape, dtype=torch.bool, device=spec.device))
-        tensordict_reset.set(self.delta_key, torch.zeros(shape, dtype=spec.dtype, device=spec.device))
+        tensordict_reset.set(self.clipped_key, action_shaped_full(self.parent, self.action_key, False, torch.bool))
+        tensordict_reset.set(self.delta_key, action_shaped_full(self.parent, self.action_key, 0.0))
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:

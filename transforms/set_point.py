@@ -12,14 +12,13 @@ TorchRL's action transforms map actions elementwise; this one runs a controller 
 
 from __future__ import annotations
 
-import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import with_action_shaped_entry, with_bounded_action
+from transforms.specs import action_shaped_full, carry_to_next, with_action_shaped_entry, with_bounded_action
 
 
 class SetPointAction(Transform):
@@ -95,14 +94,10 @@ class SetPointAction(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        val = tensordict.get(self.ratio_key, None)
-        if val is not None:
-            next_tensordict.set(self.ratio_key, val)
-        return next_tensordict
+        return carry_to_next(tensordict, next_tensordict, self.ratio_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        spec = self.parent.full_action_spec[self.action_key]
-        tensordict_reset.set(self.ratio_key, torch.full(spec.shape, self.ratio0, dtype=spec.dtype, device=spec.device))
+        tensordict_reset.set(self.ratio_key, action_shaped_full(self.parent, self.action_key, self.ratio0))
         return tensordict_reset
 
     def transform_action_spec(self, action_spec):

@@ -1,4 +1,4 @@
-"""Small spec helpers shared by the transforms."""
+"""Small spec and entry helpers shared by the transforms."""
 
 from __future__ import annotations
 
@@ -34,6 +34,22 @@ def with_action_shaped_entry(observation_spec, parent, action_key, key):
     spec = parent.full_action_spec[action_key]
     observation_spec[key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
     return observation_spec
+
+
+def action_shaped_full(parent, action_key, value, dtype=None) -> torch.Tensor:
+    """A tensor shaped like the parent's action filled with ``value`` (a logged entry's reset value)."""
+    spec = parent.full_action_spec[action_key]
+    return torch.full(spec.shape, value, dtype=dtype or spec.dtype, device=spec.device)
+
+
+def carry_to_next(tensordict, next_tensordict, *keys):
+    """``next_tensordict`` with the entries ``keys`` that ``_inv_call`` wrote on the step's input
+    (a transform's log of the command it executed), so they reach the rollout; absent ones are skipped."""
+    for key in keys:
+        val = tensordict.get(key, None)
+        if val is not None:
+            next_tensordict.set(key, val)
+    return next_tensordict
 
 
 def profile_table(owner: str, field: str, values: dict, kinds) -> torch.Tensor:

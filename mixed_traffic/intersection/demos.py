@@ -29,7 +29,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from mixed_traffic.envs.intersection import HARD_START_X, IntersectionEnv, agent_bank
-from mixed_traffic.intersection.nmpc import NMPCConfig, make_nmpc_policy
+from mixed_traffic.intersection.nmpc import NMPCConfig, make_nmpc_policy, nmpc_config
 
 MIX_FIELDS = ("hard_start_fraction", "reactive_fraction", "pause_fraction")
 
@@ -111,7 +111,7 @@ def load_or_make(path: str | Path | None, *, expert: str, episodes: int, seed: i
         raise ValueError(f"loss.bc.expert={expert!r} is invalid; allowed: 'nmpc'")
     expert_overrides = dict(expert_overrides or {})
     try:  # a bad field fails here, before any episode runs
-        make_nmpc_policy(**expert_overrides).module.cfg.validate()
+        nmpc_config(**expert_overrides)
     except ValueError as e:
         raise ValueError(f"loss.bc.expert_overrides: {e}") from None
     path = Path(path) if path else default_path(expert, seed, episodes, mix, expert_overrides)
@@ -185,10 +185,10 @@ def main(argv: list[str] | None = None) -> Path:
                     help="DAgger: this trained run drives, the NMPC labels; the bank's shares, the expert's fields "
                          "and the seed are the run's; the output holds the expert's own demonstrations too")
     a = ap.parse_args(argv)
-    if a.driver:
-        return dagger(a.driver, episodes=a.episodes, out=a.out)
     if a.episodes < 1:
         ap.error(f"--episodes {a.episodes} is invalid; allowed: an integer >= 1")
+    if a.driver:
+        return dagger(a.driver, episodes=a.episodes, out=a.out)
     mix = {k: getattr(a, k) for k in MIX_FIELDS}
     bad = {k: v for k, v in mix.items() if not 0.0 <= v <= 1.0}
     if bad or sum(mix.values()) > 1.0:

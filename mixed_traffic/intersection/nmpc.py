@@ -391,12 +391,23 @@ def make_nmpc_policy(config: NMPCConfig | None = None, **kwargs) -> TensorDictMo
     >>> policy.module.cfg.horizon
     30
     """
+    return TensorDictModule(NMPCController(nmpc_config(config, **kwargs)), in_keys=["observation"],
+                            out_keys=["action"])
+
+
+def nmpc_config(config: NMPCConfig | None = None, **kwargs) -> NMPCConfig:
+    """``config`` (default ``NMPCConfig()``) with the fields ``kwargs`` replaced, validated; builds no solver.
+
+    >>> nmpc_config(margin=0.25).margin
+    0.25
+    """
     cfg = config or NMPCConfig()
     for k, v in kwargs.items():
         if not hasattr(cfg, k):
             raise ValueError(f"{k} is not an NMPCConfig field; allowed: {sorted(cfg.__dataclass_fields__)}")
         setattr(cfg, k, v)
-    return TensorDictModule(NMPCController(cfg), in_keys=["observation"], out_keys=["action"])
+    cfg.validate()
+    return cfg
 
 
-__all__ = ["NMPCConfig", "NMPCController", "NMPCStats", "make_nmpc_policy", "predict_agent"]
+__all__ = ["NMPCConfig", "NMPCController", "NMPCStats", "make_nmpc_policy", "nmpc_config", "predict_agent"]
