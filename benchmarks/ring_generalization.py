@@ -97,14 +97,15 @@ def main(argv=None) -> dict:
     p.add_argument("--seconds", type=float, default=200.0)
     p.add_argument("--seed", type=int, default=2000, help="evaluation seed (default 2000, not a training seed)")
     p.add_argument("--cases", nargs="+", default=None, help="subset of the cases")
+    p.add_argument("--baselines", nargs="+", default=["idm"],
+                   help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6')")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
 
     import torch
 
-    from mixed_traffic.controllers.classic import make_classic_policy
     from mixed_traffic.evaluation.harness import evaluate
-    from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
+    from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
 
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
@@ -116,15 +117,15 @@ def main(argv=None) -> dict:
         case = all_cases[name]
         cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
         rep, _ = evaluate(cfg, policy_factory=factory)
-        idm_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
-        from omegaconf import open_dict
-
-        with open_dict(idm_cfg):
-            idm_cfg.transforms.chain = ["non_negative_reward"]
-        idm, _ = evaluate(idm_cfg, policy_factory=lambda env: make_classic_policy("idm", env))
         prof = case["profile"]
-        results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof),
-                         "idm": row(idm, prof)}
+        results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof)}
+        for spec in a.baselines:
+            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+            from omegaconf import open_dict
+
+            with open_dict(base_cfg):
+                base_cfg.transforms.chain = ["non_negative_reward"]
+            results[name][spec] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0], prof)
         print(name, json.dumps(results[name]["policy"]), flush=True)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -134,7 +135,7 @@ def main(argv=None) -> dict:
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]
     for name, r in results.items():
-        p_, i_ = r["policy"], r["idm"]
+        p_ = r["policy"]
         lines.append(f"| {name} | policy + layer | {p_['collisions']} | {p_['min_gap']:.2f} | – | "
                      f"{p_['max_head_gap']:.1f} | {p_['steady_rmse']:.3f} | {p_['jerk']:.2f} | {p_['return']:.0f} | "
                      f"{p_['intervention_rate']:.3f} |")
@@ -142,8 +143,11 @@ def main(argv=None) -> dict:
             lines.append(f"| {name} | policy, no layer, start {label} | {q['collisions']} | {q['min_gap']:.2f} | "
                          f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {q['steady_rmse']:.3f} | "
                          f"{q['jerk']:.2f} | {q['return']:.0f} | – |")
-        lines.append(f"| {name} | IDM, no layer | {i_['collisions']} | {i_['min_gap']:.2f} | – | "
-                     f"{i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.2f} | {i_['return']:.0f} | – |")
+        for spec in a.baselines:
+            i_ = r[spec]
+            lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, no layer | {i_['collisions']} | {i_['min_gap']:.2f} "
+                         f"| – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.2f} | "
+                         f"{i_['return']:.0f} | – |")
     md = "\n".join(lines) + "\n"
     (out / "generalization.md").write_text(md)
     print(md)

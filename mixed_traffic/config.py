@@ -105,6 +105,13 @@ class InterventionCostConfig:
 
 
 @dataclass
+class JerkLimitConfig:
+    """``jerk_limit`` in the chain: the command moves at most ``max_jerk * dt`` from the current acceleration."""
+
+    max_jerk: float = 2.0  # m/s^3
+
+
+@dataclass
 class JerkPenaltyConfig:
     """Training-only smoothness term ``r -= weight * |a_t - a_{t-1}| / (action range)``."""
 
@@ -113,10 +120,15 @@ class JerkPenaltyConfig:
 
 @dataclass
 class ResidualConfig:
-    """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual)."""
+    """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual).
+
+    ``params`` override the base model's parameters (``transforms.residual.params.s0=6.0``: an IDM
+    that stops 6 m behind its leader); unknown names fail when the env is built, naming the allowed ones.
+    """
 
     base: str = "idm"
     weight: float = 0.5
+    params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
 
 
 @dataclass
@@ -237,6 +249,7 @@ class TransformsConfig:
     residual: ResidualConfig = field(default_factory=ResidualConfig)
     residual_nnmpc: ResidualNNMPCConfig = field(default_factory=ResidualNNMPCConfig)
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
+    jerk_limit: JerkLimitConfig = field(default_factory=JerkLimitConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)
     counterfactual_reward: CounterfactualRewardConfig = field(default_factory=CounterfactualRewardConfig)

@@ -122,6 +122,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.intervention_cost.direction": OneOf(("both", "brake", "push")),
     "transforms.residual.base": OneOf(("idm", "ovm")),
     "transforms.residual.weight": Real(0),
+    "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
     "transforms.discretizer.action_bins": Int(2),
@@ -227,6 +228,18 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and not tc.safety_layer.s_min < tc.safety_layer.s_max):
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
+    params = OmegaConf.select(cfg, "transforms.residual.params", default=None)
+    if params:
+        import dataclasses
+
+        from mixed_traffic.physics import IDMParams, OVMParams
+
+        model = OmegaConf.select(cfg, "transforms.residual.base", default="idm")
+        allowed = sorted(f.name for f in dataclasses.fields(IDMParams if model == "idm" else OVMParams))
+        for k, v in params.items():
+            if k not in allowed:
+                raise ConfigError(f"transforms.residual.params.{k}", f"is not a {model} parameter", str(allowed))
+            Real()(f"transforms.residual.params.{k}", v)
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

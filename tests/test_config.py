@@ -32,25 +32,32 @@ def test_every_experiment_composes(name):
 
 
 def test_lagrangian_ppo_reproduces_the_seed_settings():
+    for name in ("ring_lagrangian_ppo", "ring_lagrangian_ppo_no_apg"):
+        cfg = compose([f"experiment={name}"])
+        assert (cfg.env.weight_v, cfg.env.weight_s, cfg.env.weight_u) == (5.0, 0.5, 0.1)
+        assert cfg.loss.name == "lagrangian_ppo"
+        assert cfg.loss.clip_epsilon == 0.15 and cfg.loss.clip_value == 0.2 and cfg.trainer.epochs == 6
+        assert cfg.trainer.num_envs * cfg.trainer.rollout_len == 4096
+        # PID multiplier on (s_min violation + the layer's intervention) against a 1 % budget
+        assert (cfg.loss.lambda_method, cfg.loss.lambda_init, cfg.loss.lambda_lr, cfg.loss.lambda_kp,
+                cfg.loss.lambda_max, cfg.loss.violation_tolerance) == ("pid", 1.0, 0.5, 5.0, 10.0, 0.01)
+        assert list(cfg.transforms.chain)[:4] == ["non_negative_reward", "safety_layer", "residual_idm",
+                                                  "intervention_cost"]
+        assert cfg.transforms.residual.weight == 0.5
+        # trained on a broad distribution, not on the evaluation profiles
+        assert cfg.env.profile == "random_ramps" and cfg.env.profile_kwargs.v_high == 20.0
+        assert list(cfg.env.overrides.init_spacing_range) == [8.0, 73.4] and cfg.env.hdv_param_noise == 0.1
+        assert (cfg.eval.s_min, cfg.eval.s_max) == (5.0, 40.0)
+    # the default: APG first, then PPO with little noise; IDM with a 6 m standstill gap underneath;
+    # the layer's head-gap bound is 2 m inside the evaluation's 40 m
     cfg = compose(["experiment=ring_lagrangian_ppo"])
-    assert (cfg.env.weight_v, cfg.env.weight_s, cfg.env.weight_u) == (5.0, 0.5, 0.1)
-    assert cfg.loss.name == "lagrangian_ppo"
-    assert cfg.loss.clip_epsilon == 0.15 and cfg.loss.clip_value == 0.2
-    assert cfg.trainer.lr == 3e-4 and cfg.trainer.epochs == 6
-    assert cfg.trainer.num_envs * cfg.trainer.rollout_len == 4096
-    # PID multiplier on (s_min violation + the layer's intervention) against a 1 % budget
-    assert (cfg.loss.lambda_method, cfg.loss.lambda_init, cfg.loss.lambda_lr, cfg.loss.lambda_kp,
-            cfg.loss.lambda_max, cfg.loss.violation_tolerance) == ("pid", 1.0, 0.5, 5.0, 10.0, 0.01)
-    assert list(cfg.transforms.chain) == ["non_negative_reward", "safety_layer", "residual_idm", "intervention_cost"]
-    assert cfg.transforms.residual.weight == 0.5
-    # trained on a broad distribution, not on the evaluation profiles
-    assert cfg.env.profile == "random_ramps" and cfg.env.profile_kwargs.v_high == 20.0
-    assert list(cfg.env.overrides.init_spacing_range) == [8.0, 73.4] and cfg.env.hdv_param_noise == 0.1
+    assert cfg.policy.apg.iterations > 0 and cfg.trainer.total_frames > 0 and not cfg.policy.shared_trunk
+    assert dict(cfg.transforms.residual.params) == {"s0": 7.0, "v0": 40.0} and cfg.transforms.chain[-1] == "jerk_penalty"
+    assert (cfg.transforms.safety_layer.s_min, cfg.transforms.safety_layer.s_max) == (5.0, 38.0)
+    old = compose(["experiment=ring_lagrangian_ppo_no_apg"])
+    assert old.policy.apg.iterations == 0 and old.transforms.safety_layer.s_max == 30.0 and old.trainer.lr == 3e-4
     scratch = compose(["experiment=ring_lagrangian_ppo_scratch"])
     assert list(scratch.transforms.chain) == ["non_negative_reward", "safety_layer", "intervention_cost"]
-    # the layer runs with a 10 m margin below the 40 m bound the evaluation checks
-    assert (cfg.transforms.safety_layer.s_min, cfg.transforms.safety_layer.s_max) == (5.0, 30.0)
-    assert (cfg.eval.s_min, cfg.eval.s_max) == (5.0, 40.0)
 
 
 def test_baselines_use_the_seed_settings():

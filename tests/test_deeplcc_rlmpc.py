@@ -183,7 +183,7 @@ def test_apg_alone_trains_and_saves_a_policy(tmp_path):
     over = ["experiment=ring_lagrangian_ppo", "policy.apg.num_envs=4", "policy.apg.horizon=5",
             "trainer.total_frames=0", "trainer.progress=false", "eval.after_train=false"]
     with pytest.raises(ConfigError, match="trainer.total_frames.*policy.apg.iterations"):
-        train(compose(over), out_dir=tmp_path / "none")  # no PPO and no APG: nothing would train
+        train(compose([*over, "policy.apg.iterations=0"]), out_dir=tmp_path / "none")  # no PPO, no APG: nothing trains
     torch.manual_seed(0)
     res = train(compose([*over, "policy.apg.iterations=3"]), out_dir=tmp_path / "apg")
     assert res["summary"]["frames"] == 0 and (tmp_path / "apg" / "final.pt").is_file()

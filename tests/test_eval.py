@@ -59,6 +59,17 @@ def test_episode_metrics_on_a_known_trace():
     assert not tr.valid[1, 60:].any()
 
 
+def test_jerk_after_the_warm_up_leaves_the_start_transient_out():
+    td = _trace()
+    a = td["next", "cav", "accel"]
+    a[0, 2] = 3.0  # a 0.1-s pulse of 3 m/s^2 at t = 0.3 s, inside the 1-s warm-up
+    a[0, 50] = 1.0  # and one of 1 m/s^2 after it
+    m, _ = episode_metrics(td, dt=0.1, s_min=5.0, s_max=40.0, warmup=1.0, settle=0.5)
+    # |da|/dt: 30 + 30 (up, down) in the warm-up, 10 + 10 after; 99 jerk samples, 91 after the warm-up
+    assert m["mean_abs_jerk"][0].item() == pytest.approx(80 / 99, rel=1e-4)
+    assert m["mean_abs_jerk_after"][0].item() == pytest.approx(20 / 91, rel=1e-4)
+
+
 def test_classic_controllers_follow_without_collision():
     for name in ("idm", "ovm"):
         env = make_env("ring", batch_size=3, seed=0)
@@ -84,7 +95,8 @@ def test_evaluate_a_classical_controller_is_deterministic():
 def test_report_from_a_trained_checkpoint(tmp_path):
     cfg = compose(["experiment=ring_lagrangian_ppo", "trainer.num_envs=8", "trainer.rollout_len=4",
                    "trainer.total_frames=96", "trainer.progress=false", "trainer.epochs=1",
-                   "trainer.minibatch_size=16"] + SHORT_EVAL)
+                   "trainer.minibatch_size=16", "policy.apg.iterations=2", "policy.apg.num_envs=4",
+                   "policy.apg.horizon=5"] + SHORT_EVAL)
     train(cfg, out_dir=tmp_path / "run")
     rep = evaluate_and_report(cfg, tmp_path / "eval", checkpoint=tmp_path / "run" / "final.pt")
     data = json.loads((tmp_path / "eval" / "report.json").read_text())
@@ -94,7 +106,7 @@ def test_report_from_a_trained_checkpoint(tmp_path):
     for name in ("random_steps.png", "emergency_brake.png", "training_curves.png"):
         assert (tmp_path / "eval" / name).stat().st_size > 1000, name
     # the safety layer of the trained config is part of the evaluated controller
-    assert rep["transforms"] == ["non_negative_reward", "safety_layer", "residual_idm", "intervention_cost"]
+    assert rep["transforms"][:4] == ["non_negative_reward", "safety_layer", "residual_idm", "intervention_cost"]
     # ... and the policy is evaluated without it too, from the standard and the close starts
     assert set(data["without_layer"]["random_steps"]) == {"standard (73.4 m)", "8 m", "15 m"}
     assert "Without the safety layer" in md and "λ over training" in md

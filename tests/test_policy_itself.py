@@ -101,6 +101,34 @@ def test_jerk_penalty_prices_changes_of_the_executed_acceleration():
         JerkPenalty(weight=-1.0)
 
 
+def test_jerk_limit_bounds_the_change_and_lets_the_layer_brake_at_once():
+    from transforms import JerkLimit
+
+    def accels(chain, acts):
+        env = TransformedEnv(make_env("ring", batch_size=2, seed=0), Compose(*chain))
+        check_env_specs(env)
+        it = iter(acts)
+        return env.rollout(len(acts), lambda td: td.set("action", next(it)))["next", "cav", "accel"][0, :, 0]
+
+    acts = torch.tensor([3.0, 3.0, -3.0, -3.0, -3.0]).repeat(2, 1).T.unsqueeze(-1)
+    a = accels([JerkLimit(max_jerk=5.0)], acts)  # 0.5 m/s^2 per 0.1 s step from the reset's 0
+    assert a.tolist() == pytest.approx([0.5, 1.0, 0.5, 0.0, -0.5], abs=1e-5)
+    # behind the layer: with no room ahead the layer brakes at once, whatever the limiter passed
+    env = TransformedEnv(make_env("ring", batch_size=1, seed=0, init_spacing_rows=(5.5,)),
+                         Compose(SafetyLayer(s_min=5.0, s_max=None), JerkLimit(max_jerk=1.0)))
+    td = env.rollout(3, lambda td: td.set("action", torch.full((1, 1), 3.0)))
+    assert float(td["next", "cav", "accel"][0, -1]) < -0.5
+    x = torch.tensor([[2.0]], requires_grad=True)  # gradients pass inside the band
+    lim = TransformedEnv(make_env("ring", batch_size=1, seed=0), JerkLimit(max_jerk=100.0))
+    lim.base_env.differentiable = True
+    out = lim.step(lim.reset().set("action", x * 1.0))["next", "cav", "accel"]
+    out.sum().backward()
+    assert x.grad is not None and float(x.grad) > 0
+    for bad in ({"max_jerk": 0.0}, {"max_jerk": 1.0, "dt": -0.1}):
+        with pytest.raises(ValueError, match=next(iter(k for k in bad if k != "max_jerk" or bad[k] <= 0))):
+            JerkLimit(**bad)
+
+
 # ----------------------------------------------------------------------------- PID multiplier
 def test_pid_without_gains_is_dual_ascent():
     pid = LagrangeMultiplier(init=1.0, lr=0.3, cost_limit=0.1, method="pid")
@@ -236,12 +264,44 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("transforms.intervention_cost.direction=down", "transforms.intervention_cost.direction"),
     ("transforms.residual.weight=-0.5", "transforms.residual.weight"),
     ("eval.intervention_bar=2", "eval.intervention_bar"),
+    ("transforms.residual.params.s9=6.0", "transforms.residual.params.s9"),
+    ("transforms.residual.params.s0=abc", "transforms.residual.params.s0"),
 ])
 def test_new_config_fields_are_validated(override, field):
     from mixed_traffic.validation import validate_config
 
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         validate_config(compose(["experiment=ring_lagrangian_ppo", override]))
+
+
+def test_residual_base_parameters_change_the_base_controller():
+    """``transforms.residual.params.s0=6``: with a zero residual the CAV drives IDM(s0=6), which
+    stops farther behind a stopped leader than the humans' IDM (s0 2.5 m)."""
+    from mixed_traffic.training.builders import make_transformed_env
+
+    gaps = {}
+    for over in ([], ["transforms.residual.params.s0=6.0"]):
+        cfg = compose(["experiment=ring_lagrangian_ppo_no_apg", "transforms.chain=[residual_idm]", *over])
+        env = make_transformed_env(cfg, num_envs=2, seed=0, profile="emergency_brake",
+                                   profile_kwargs={"start": 40.0, "v_cruise": 10.0, "v_low": 0.0})
+        td, low = env.reset(), []
+        for _ in range(530):  # the head stands still from 43 to 53 s
+            td = env.step(td.set("action", torch.zeros(env.action_spec.shape)))["next"]
+            low.append(td["cav", "gap"].min())
+        gaps[bool(over)] = float(min(low))
+    assert gaps[False] < 3.0 and gaps[True] > 5.0, gaps  # 2.40 m and 5.05 m measured
+
+
+def test_classic_controller_spec_with_parameters():
+    from mixed_traffic.evaluation.policies import classic_factory
+
+    env = make_env("ring", batch_size=2, seed=0)
+    pol = classic_factory("idm:s0=6;T=0.8")(env)
+    assert pol.module.params["s0"] == 6.0 and pol.module.params["T"] == 0.8
+    with pytest.raises(ValueError, match="controller"):
+        classic_factory("idm:s0")
+    with pytest.raises(ValueError, match=r"\['T', 'a'"):
+        classic_factory("idm:s9=1")
 
 
 # ----------------------------------------------------------------------------- one batched evaluation rollout

@@ -9,6 +9,7 @@ from transforms.counterfactual_reward import CounterfactualReward
 from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
 from transforms.intervention_cost import InterventionCost
+from transforms.jerk_limit import JerkLimit
 from transforms.jerk_penalty import JerkPenalty
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.residual import ResidualAction
@@ -20,6 +21,7 @@ __all__ = [
     "SafetyLayer",
     "InterventionCost",
     "JerkPenalty",
+    "JerkLimit",
     "LagrangeMultiplier",
     "LagrangianPenalty",
     "NonNegativeReward",

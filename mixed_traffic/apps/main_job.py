@@ -34,6 +34,10 @@ def apply_small_budget(cfg: DictConfig) -> None:
         cfg.eval.episodes = min(int(cfg.eval.episodes), 2)
         cfg.eval.episode_seconds = 60.0
         cfg.eval.warmup_seconds = 10.0
+        if cfg.policy.get("apg") is not None and cfg.policy.apg.iterations:
+            cfg.policy.apg.iterations = min(int(cfg.policy.apg.iterations), 3)
+            cfg.policy.apg.num_envs = min(int(cfg.policy.apg.num_envs), 8)
+            cfg.policy.apg.horizon = min(int(cfg.policy.apg.horizon), 10)
 
 
 def run_main(cfg: DictConfig) -> dict:

@@ -15,7 +15,8 @@ Metrics per episode (all from the env key contract):
 - ``speed_rmse_steady``: the same on steady-state samples only: the head's speed has
   been constant (|a_head| < 0.05 m/s^2) for ``settle_seconds`` (profiles without such
   plateaus, e.g. a sine, fall back to ``speed_rmse``),
-- ``mean_abs_accel`` (m/s^2), ``mean_abs_jerk`` (m/s^3), ``return`` (sum of the env's
+- ``mean_abs_accel`` (m/s^2), ``mean_abs_jerk`` (m/s^3; ``mean_abs_jerk_after``: after the
+  warm-up, as the gap bounds are judged), ``return`` (sum of the env's
   transformed reward), ``mean_J`` (DeeP-LCC stage cost), ``safety_clip_rate`` (the
   intervention rate: share of steps where the safety layer changed the command),
   ``mean_abs_delta`` (m/s^2, mean |executed - commanded|),
@@ -45,7 +46,7 @@ from tqdm.auto import tqdm
 from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_transformed_env
 
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
-           "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "return", "mean_J", "safety_clip_rate",
+           "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after", "return", "mean_J", "safety_clip_rate",
            "mean_abs_delta", "override_rate", "length")
 
 
@@ -117,6 +118,7 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     jvalid = valid.clone()
     jvalid[:, 0] = False
     out["mean_abs_jerk"] = masked_mean(jerk, jvalid)
+    out["mean_abs_jerk_after"] = masked_mean(jerk, jvalid & after)
     out["return"] = (nxt.get("reward").squeeze(-1) * valid).sum(1)
     out["mean_J"] = masked_mean(nxt.get(("traffic", "J")).squeeze(-1), valid)
     clipped = nxt.get(("safety", "clipped"), None)

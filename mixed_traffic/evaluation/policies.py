@@ -79,8 +79,12 @@ def policy_factory_from_state(cfg: DictConfig, state: dict):
 
 
 def classic_factory(name: str):
+    """``factory(env)`` for ``controller=NAME`` or ``NAME:param=value[;param=value]`` (``"idm:s0=6"``)."""
     from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.evaluation.waves import parse_controller
 
-    return lambda env: make_classic_policy(name, env)
+    model, params = parse_controller(name, field="controller")
+    make_classic_policy(model, low=-1.0, high=1.0, **params)  # bad names fail here, before any rollout
+    return lambda env: make_classic_policy(model, env, **params)
 
 

@@ -17,13 +17,14 @@ MD_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", 
               ("max_head_gap", "max head gap (m)", "{:.2f}"), ("time_outside", "time outside (s)", "{:.1f}"),
               ("speed_rmse_steady", "steady RMSE (m/s)", "{:.3f}"), ("speed_rmse", "RMSE (m/s)", "{:.3f}"),
               ("mean_abs_accel", "mean abs a (m/s2)", "{:.3f}"), ("mean_abs_jerk", "jerk (m/s3)", "{:.2f}"),
+              ("mean_abs_jerk_after", "jerk after warm-up (m/s3)", "{:.3f}"),
               ("return", "return", "{:.1f}"), ("safety_clip_rate", "intervention rate", "{:.3f}"),
               ("mean_abs_delta", "mean abs Δa (m/s2)", "{:.3f}"), ("override_rate", "speed-mode-95 override rate", "{:.3f}"))
 NO_LAYER_COLUMNS = (("collision", "collisions", "{:.0f}"), ("min_gap", "min gap (m)", "{:.2f}"),
                     ("min_gap_after", "min gap after warm-up (m)", "{:.2f}"),
                     ("max_head_gap", "max head gap (m)", "{:.2f}"), ("time_outside", "time outside (s)", "{:.1f}"),
                     ("speed_rmse_steady", "steady RMSE (m/s)", "{:.3f}"), ("mean_abs_jerk", "jerk (m/s3)", "{:.2f}"),
-                    ("return", "return", "{:.1f}"))
+                    ("mean_abs_jerk_after", "jerk after warm-up (m/s3)", "{:.3f}"), ("return", "return", "{:.1f}"))
 
 
 def write_report(report: dict, out_dir: str | Path, traces: dict[str, Trace] | None = None, *,

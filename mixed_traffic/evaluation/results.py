@@ -10,6 +10,7 @@ or ``mt-eval``) and, for trained policies, ``summary.json``.
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import sys
 from pathlib import Path
@@ -83,13 +84,14 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
     """
     base = _report(baseline_dir) if baseline_dir is not None else None
     lines = ["| profile | run | layer | start | collisions | min gap (m) | max head gap (m) | steady RMSE (m/s) | "
-             "jerk (m/s3) | return | intervention rate | mean abs Δa (m/s2) |", "|" + "---|" * 12]
+             "jerk (m/s3) | jerk after warm-up (m/s3) | return | intervention rate | mean abs Δa (m/s2) |", "|" + "---|" * 13]
 
     def cells(r, after=False):
         m = r["metrics"]
         gap = m["min_gap_after"]["min"] if after and "min_gap_after" in m else m["min_gap"]["min"]
         return (f"{r['collisions']} / {len(r['per_episode']['collision'])} | {gap:.2f} | {m['max_head_gap']['max']:.2f} | "
-                f"{m['speed_rmse_steady']['mean']:.3f} | {m['mean_abs_jerk']['mean']:.3f} | {m['return']['mean']:.1f}")
+                f"{m['speed_rmse_steady']['mean']:.3f} | {m['mean_abs_jerk']['mean']:.3f} | "
+                f"{m.get('mean_abs_jerk_after', {'mean': math.nan})['mean']:.3f} | {m['return']['mean']:.1f}")
 
     first = _report(run_dirs[0])
     for prof in first["profiles"]:

@@ -161,7 +161,7 @@ def _stats(x: torch.Tensor) -> dict:
             "min": float(x.min()), "max": float(x.max())}
 
 
-def parse_controller(name: str) -> tuple[str, dict]:
+def parse_controller(name: str, field: str = "eval.wave.controllers") -> tuple[str, dict]:
     """``"follower_stopper:u_ratio=0.93;U=3"`` -> ``("follower_stopper", {"u_ratio": 0.93, "U": 3.0})``."""
     damper, _, args = name.partition(":")
     kwargs = {}
@@ -172,7 +172,7 @@ def parse_controller(name: str) -> tuple[str, dict]:
         except ValueError:
             eq = ""
         if not eq or not key.strip():
-            raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: name or name:key=number[;key=number]")
+            raise ValueError(f"{field}: {name!r} is invalid; allowed: name or name:key=number[;key=number]")
     return damper, kwargs
 
 

@@ -95,12 +95,22 @@ def _jerk_penalty(tcfg, env):
     return JerkPenalty(weight=tcfg.jerk_penalty.weight)
 
 
+def _jerk_limit(tcfg, env):
+    from transforms import JerkLimit
+
+    return JerkLimit(max_jerk=tcfg.jerk_limit.max_jerk)
+
+
 def _residual_idm(tcfg, env):
     from mixed_traffic.controllers.classic import make_classic_policy
     from transforms import ResidualAction
 
     r = tcfg.residual
-    return ResidualAction(make_classic_policy(r.base, env), weight=r.weight)
+    try:
+        base = make_classic_policy(r.base, env, **dict(r.get("params") or {}))
+    except ValueError as e:
+        raise ValueError(f"transforms.residual: {e}") from None
+    return ResidualAction(base, weight=r.weight)
 
 
 def _residual_nnmpc(tcfg, env):
@@ -148,6 +158,7 @@ TRANSFORMS: dict[str, Callable] = {
     "residual_idm": _residual_idm,
     "residual_nnmpc": _residual_nnmpc,
     "jerk_penalty": _jerk_penalty,
+    "jerk_limit": _jerk_limit,
     "state_discretizer": _state_discretizer,
     "barrier_force": _barrier_force,
     "residual_nmpc": _residual_nmpc,
