@@ -103,6 +103,7 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
 
     import torch
+    from omegaconf import open_dict
 
     from mixed_traffic.evaluation.harness import evaluate
     from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
@@ -121,8 +122,6 @@ def main(argv=None) -> dict:
         results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof)}
         for spec in a.baselines:
             base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
-            from omegaconf import open_dict
-
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             results[name][spec] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0], prof)

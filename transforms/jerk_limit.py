@@ -11,6 +11,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import parent_dt
+
 
 class JerkLimit(Transform):
     """Moves the command at most ``max_jerk * dt`` away from the CAV's current acceleration.
@@ -25,7 +27,7 @@ class JerkLimit(Transform):
 
     Args:
         max_jerk: the bound (m/s^3, > 0).
-        dt: the step (s); ``None`` reads ``scenario.dt`` of the base env.
+        dt: the step (s); ``None`` reads the parent env's ``dt``.
         action_key: the command entry (default ``"action"``).
         accel_key: the current acceleration entry (default ``("cav", "accel")``).
 
@@ -53,10 +55,7 @@ class JerkLimit(Transform):
     @property
     def dt(self) -> float:
         if self._dt is None:
-            sc = getattr(getattr(self.parent, "base_env", None), "scenario", None)
-            if sc is None:
-                raise ValueError("JerkLimit: dt=None but the base env has no scenario.dt; pass dt")
-            self._dt = float(sc.dt)
+            self._dt = parent_dt(self.parent, "JerkLimit")
         return self._dt
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:

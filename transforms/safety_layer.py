@@ -57,7 +57,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import action_shaped_full, carry_to_next
+from transforms.specs import action_shaped_full, carry_to_next, parent_dt
 
 Tensor = torch.Tensor
 
@@ -296,11 +296,7 @@ class SafetyLayer(Transform):
     @property
     def dt(self) -> float:
         if self._dt is None:
-            parent = self.parent
-            dt = getattr(parent, "dt", None) if parent is not None else None
-            if dt is None:
-                raise ValueError("SafetyLayer: dt=None but the parent env has no `dt`; pass dt explicitly (> 0)")
-            self._dt = float(dt)
+            self._dt = parent_dt(self.parent, "SafetyLayer")
         return self._dt
 
     def _bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:

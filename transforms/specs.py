@@ -16,6 +16,15 @@ def action_range(env) -> float:
     return float((spec.space.high - spec.space.low).flatten()[0])
 
 
+def parent_dt(parent, owner: str) -> float:
+    """The control step ``dt`` (s) of a transform's parent env (TransformedEnv forwards the base env's ``dt``);
+    ``owner`` names the transform in the error when the env has none."""
+    dt = getattr(parent, "dt", None) if parent is not None else None
+    if dt is None:
+        raise ValueError(f"{owner}: dt=None but the parent env has no `dt`; pass dt explicitly (> 0)")
+    return float(dt)
+
+
 def with_bounded_action(action_spec, key, low: float, high: float):
     """``action_spec`` (a ``Composite`` or a leaf) with the entry ``key`` replaced by ``Bounded(low, high)``
     of the same shape: the action a policy outputs when a transform maps it to the env's command."""
