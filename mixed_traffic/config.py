@@ -48,7 +48,8 @@ class EnvConfig:
 
     scenario: str = "ring"
     backend: str = "torch"
-    observation: str | None = None  # "seed" ([v/30, p/L]) or "relative" (per-CAV physical features)
+    observation: str | None = None  # "seed" ([v/30, p/L]), "relative" (per-CAV physical features), "relative_accel"
+    # ("relative" + the leader's acceleration), "relative_no_speed" ("relative" less the CAV's speed) or "wave"
     profile: str | None = None
     profile_kwargs: dict[str, Any] | None = None
     episode_seconds: float | None = None
@@ -76,6 +77,10 @@ class SafetyLayerConfig:
     s_min: float = 5.0
     s_max: float | None = 40.0
     mode: str = "stopping"  # "stopping": collision-free under bounded braking; "one_step": the seed's rule
+    # a head gap beyond s_max: "push" (full acceleration back), "hold" (keep it from growing) or
+    # "ramp" (hold, and push with a demand rising at ramp_jerk m/s^3 from the current acceleration)
+    beyond_s_max: str = "push"
+    ramp_jerk: float = 1.0
 
 
 @dataclass
@@ -282,6 +287,8 @@ class APGConfig:
     # learns to keep its gaps by itself) and a gap (m) below which the CAVs' gap is priced as cost
     without: list[str] = field(default_factory=list)
     gap_margin: float | None = None
+    head_gap_max: float | None = None  # ring: a head gap (m) above which the excess is priced as cost ...
+    head_gap_after: float = 0.0  # ... from this time (s) into the episode on
 
 
 @dataclass

@@ -45,7 +45,13 @@ class TrafficScenario:
       as ``J = 1 - r`` with ``J_max = 1``, so ``NonNegativeReward`` gives ``max(r, 0)``;
     * ``observation="wave"``: each CAV's local view ``[v/10, (v_lead - v)/10, gap/20,
       (v_avg - v)/10, a/a_max]`` where ``v_avg`` is its own mean speed over the last
-      ``cav_speed_window`` seconds (``("cav", "speed_avg")``).
+      ``cav_speed_window`` seconds (``("cav", "speed_avg")``);
+    * ``observation="relative_accel"``: ``"relative"`` plus the leader's acceleration of the
+      last step over ``a_max`` (what a CAV receives from its leader over V2V, as in CACC: it
+      sees the leader speed up or brake before the gap and the speed difference show it);
+    * ``observation="relative_no_speed"``: ``"relative"`` without the CAV's own speed ``v/30``:
+      differences and gaps only, so a policy cannot tie its command to the speeds it trained at
+      (the speed still reaches the command through a residual's base controller).
     """
 
     name: str = "ring"
@@ -270,9 +276,9 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative", "wave"):
-            bad("observation", self.observation, "'seed', 'relative' or 'wave'")
-        if self.observation == "relative" and not self.head:
+        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave"):
+            bad("observation", self.observation, "'seed', 'relative', 'relative_accel', 'relative_no_speed' or 'wave'")
+        if self.observation in ("relative", "relative_accel", "relative_no_speed") and not self.head:
             bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:
             bad("profile", self.profile, sorted(PROFILES))

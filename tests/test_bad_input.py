@@ -117,6 +117,7 @@ def test_2_nan_action_is_refused_and_the_state_stays_finite():
     ("++env.overrides.n_vehicles=2.5", "env.overrides.n_vehicles", "an integer"),
     ("++env.overrides.dt='0.1'", "env.overrides.dt", "a number"),
     ("++env.overrides.v_init=nan", "env.overrides.v_init", "finite"),
+    ("transforms.safety_layer.beyond_s_max=back", "transforms.safety_layer.beyond_s_max", "push"),
 ])
 def test_2_config_values_fail_before_any_work(tmp_path, override, field, allowed):
     cfg = compose([*TINY, override])

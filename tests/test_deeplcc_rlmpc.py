@@ -173,6 +173,34 @@ def test_apg_refuses_bad_settings_naming_the_field(nnmpc_path):
     ring_actor, _ = make_actor_critic(ring, make_transformed_env(ring, num_envs=2, seed=0))
     with pytest.raises(ValueError, match="policy.apg.J_ref.*TrafficEnv"):
         apg_pretrain(ring_actor, ring, log=None)
+    ring.policy.apg.J_ref = {}
+    ring.policy.apg.head_gap_max = 0.0
+    with pytest.raises(ValueError, match=r"policy.apg.head_gap_max=0.0 is invalid; allowed: null or > 0"):
+        apg_pretrain(ring_actor, ring, log=None)
+    cfg.policy.apg.horizon = 2
+    cfg.policy.apg.head_gap_max = 36.0  # the platoon has no head gap: refused, not ignored
+    with pytest.raises(ValueError, match="policy.apg.head_gap_max.*PlatoonEnv"):
+        apg_pretrain(actor, cfg, log=None)
+
+
+def test_apg_prices_a_head_gap_above_head_gap_max():
+    """``policy.apg.head_gap_max``: the window's loss grows by cost_coeff * (head gap - max) / max,
+    from ``head_gap_after`` seconds into the episode on."""
+    from mixed_traffic.training.apg import window_loss
+
+    cfg = compose(["experiment=ring_lagrangian_ppo"])
+    actor, _ = make_actor_critic(cfg, make_transformed_env(cfg, num_envs=2, seed=0))
+    losses = []
+    for head_max, after in ((None, 0.0), (10.0, 0.0), (10.0, 5.0)):
+        env = make_transformed_env(cfg, num_envs=3, seed=5)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            loss, td, _ = window_loss(env, actor, env.reset(), 1, None, 30.0, head_gap_max=head_max,
+                                      head_gap_after=after)
+        losses.append(float(loss))
+    assert losses[2] == losses[0]  # one 0.1-s step: still before head_gap_after
+    excess = (td["cav", "head_gap"].double() - 10.0).clamp_min(0.0) / 10.0
+    assert float(excess.min()) > 0  # the ring's starts lie beyond 10 m
+    assert losses[1] - losses[0] == pytest.approx(30.0 * float(excess.mean()), rel=1e-6)
 
 
 def test_apg_alone_trains_and_saves_a_policy(tmp_path):
@@ -197,3 +225,18 @@ def test_apg_alone_trains_and_saves_a_policy(tmp_path):
     assert set(init) == set(state["actor"])
     # ... is not what was saved: the APG steps moved the mean head
     assert any(not torch.equal(v, state["actor"][k]) for k, v in init.items())
+
+
+def test_apg_fast_action_is_the_actors_deterministic_action():
+    """APG steps with ``deterministic_action(actor)``: the action ``actor`` gives deterministically, still
+    differentiable (the gradient itself: ``test_apg_gradient_is_the_closed_loops_own``)."""
+    from mixed_traffic.training.apg import deterministic_action
+
+    cfg = compose(["experiment=ring_lagrangian_ppo"])
+    env = make_transformed_env(cfg, num_envs=4, seed=0)
+    actor, _ = make_actor_critic(cfg, env)
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        slow = actor(td.clone())["action"]
+        fast = deterministic_action(actor)(td.clone())["action"]
+    assert torch.equal(slow, fast) and fast.requires_grad

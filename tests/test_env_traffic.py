@@ -18,7 +18,7 @@ def test_check_env_specs(scenario, batch):
     check_env_specs(make_env(scenario, batch_size=batch, seed=0))
 
 
-@pytest.mark.parametrize("observation", ["seed", "relative"])
+@pytest.mark.parametrize("observation", ["seed", "relative", "relative_accel", "relative_no_speed"])
 def test_observation_modes(observation):
     env = make_env("ring", batch_size=4, seed=0, observation=observation)
     check_env_specs(env)
@@ -26,6 +26,24 @@ def test_observation_modes(observation):
     if observation == "seed":
         # [v/30, p/L]: all start at 10 m/s
         assert torch.allclose(td["observation"][:, :4], torch.full((4, 4), 10.0 / 30.0))
+
+
+def test_relative_accel_observes_the_leaders_last_acceleration():
+    """``observation="relative_accel"``: ``"relative"`` plus the leader's acceleration / a_max (V2V, as in CACC)."""
+    kw = dict(batch_size=4, seed=0, profile="sine", profile_kwargs={})
+    rel = make_env("ring", observation="relative", **kw)
+    acc = make_env("ring", observation="relative_accel", **kw)
+    act = lambda td: td.set("action", torch.full((4, 1), 0.5))  # noqa: E731
+    a, b = rel.rollout(60, act), acc.rollout(60, act)
+    assert torch.equal(b["next", "observation"][..., :7], a["next", "observation"])
+    lead = b["next", "traffic", "accel"][..., 0] / 3.0  # the CAV (index 1) follows the head
+    assert float(lead.abs().max()) > 0.1  # the sine head does accelerate
+    assert torch.allclose(b["next", "observation"][..., 7], lead)
+    with pytest.raises(ValueError, match="observation"):
+        make_env("ring_wave", batch_size=1, seed=0, observation="relative_accel")  # no head to follow
+    # "relative_no_speed": the same features less the CAV's own speed
+    c = make_env("ring", observation="relative_no_speed", **kw).rollout(60, act)
+    assert torch.equal(c["next", "observation"], a["next", "observation"][..., 1:])
 
 
 def test_ring_preset_matches_the_seed_layout():

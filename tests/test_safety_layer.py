@@ -262,6 +262,57 @@ def test_s_max_invariant_is_kept_when_the_head_holds_its_speed(v, vh, dt, a_max,
     assert h1 + brute_braking_distance(max(vh - v1, 0.0), a_max, dt) <= s_max + 1e-7
 
 
+@PROP
+@given(v=speeds, vh=speeds, dt=dts, beyond=st.floats(0.1, 60.0), a_req=st.floats(-3.0, 3.0))
+def test_hold_beyond_s_max_keeps_the_gap_from_growing_without_a_burst(v, vh, dt, beyond, a_req):
+    # a head gap already beyond s_max: "push" demands full throttle, "hold" only that the
+    # gap does not grow (the CAV keeps at least the head's speed), the command otherwise
+    s_max, h = 40.0, 40.0 + beyond
+    kw = dict(gap=t(1e3), speed=t(v), leader_speed=t(vh), head_gap=t(h), head_speed=t(vh), low=-3.0,
+              high=3.0, dt=dt, s_min=None, s_max=s_max)
+    held = float(safe_action(t(a_req), beyond_s_max="hold", **kw))
+    pushed = float(safe_action(t(a_req), beyond_s_max="push", **kw))
+    assert pushed >= held - 1e-12  # push demands at least as much as hold
+    need = min(max((vh - v) / dt, a_req), 3.0)  # keep the head's speed, else the command
+    assert held == pytest.approx(need, abs=1e-9)
+    v1 = max(v + held * dt, 0.0)
+    if (vh - v) / dt <= 3.0:
+        assert h + (vh - v1) * dt <= h + 1e-9
+
+
+def test_hold_beyond_s_max_through_the_env_leaves_a_long_start_to_the_command():
+    """From the ring's 73 m start a zero command is executed as is under "hold" (the head keeps
+    its speed at first), while "push" accelerates at the bound; inside s_max both act alike."""
+    def first_accel(beyond):
+        env = TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                             SafetyLayer(s_min=5.0, s_max=38.0, beyond_s_max=beyond))
+        td = env.rollout(3, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
+        assert float(td["cav", "head_gap"].min()) > 38.0
+        return td["next", "cav", "accel"][:, 0]
+
+    assert torch.allclose(first_accel("push"), torch.tensor(3.0), atol=1e-4)
+    assert float(first_accel("hold").abs().max()) < 1e-4
+    with pytest.raises(ValueError, match="beyond_s_max='back'.*allowed"):
+        SafetyLayer(beyond_s_max="back")
+
+
+def test_ramp_beyond_s_max_closes_a_long_start_with_bounded_jerk():
+    """``beyond_s_max="ramp"``: from the 73 m start a zero command is pushed with an acceleration that
+    rises by ramp_jerk * dt per step (no full-throttle step), and the gap is brought inside s_max."""
+    env = TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                         SafetyLayer(s_min=5.0, s_max=38.0, beyond_s_max="ramp", ramp_jerk=0.5))
+    td = env.rollout(400, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
+    accel, head_gap = td["next", "cav", "accel"][..., 0], td["next", "cav", "head_gap"][..., 0]
+    outside = td["cav", "head_gap"][..., 0] > 38.0  # the state the layer acted on
+    rise = accel[:, 1:] - accel[:, :-1]
+    assert float(rise[outside[:, 1:]].max()) <= 0.5 * 0.1 + 1e-5  # the demand rises at ramp_jerk
+    assert float(accel[:, 0].max()) == pytest.approx(0.05, abs=1e-5)  # not 3 m/s^2 at once
+    assert bool((head_gap[:, :150] <= 38.0 + 1e-3).any(-1).all())  # and the 73 m gap is closed in 15 s
+    assert not td["next", "collision"].any()
+    with pytest.raises(ValueError, match="ramp_jerk=0.0 is invalid; allowed: > 0"):
+        SafetyLayer(beyond_s_max="ramp", ramp_jerk=0.0)
+
+
 def test_one_step_rule_is_not_enough_when_braking_is_bounded():
     """Why "stopping" is the default: the one-step rule reacts too late at -3 m/s^2."""
     def collisions(mode):

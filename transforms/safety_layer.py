@@ -43,6 +43,17 @@ must still be able to close its speed deficit to the head before the gap exceeds
 drift tens of metres beyond s_max). In ``"one_step"`` mode it is the original
 ``h + (v_H - v) dt - a dt^2 / 2 <= s_max``.
 
+A state already beyond ``s_max`` (e.g. an episode that starts with a long gap) cannot
+be brought back in one step. ``beyond_s_max="push"`` (default) then drives at the
+maximum acceleration until the rule above is met again; ``"hold"`` only keeps the gap
+from growing (the rule with ``s_max`` raised to the current gap: the CAV at least keeps
+the head's speed) and leaves the closing to the command; ``"ramp"`` holds and also closes,
+but raises the demanded acceleration from the CAV's current one at ``ramp_jerk`` (m/s^3) at
+most, up to what ``"push"`` demands. ``s_max`` is a bound on how far a CAV may fall back,
+not a safety bound, so neither gives up a guarantee; both remove the full-throttle burst
+(and the jerk that follows it) from a long start, and ``"ramp"`` still brings back a
+command that does not close the gap itself.
+
 The guarantee is exact for the ``"euler"`` integration (the default of every preset);
 with ``"euler_explicit"`` / ``"ballistic"`` the same rule is a close approximation.
 """
@@ -62,6 +73,7 @@ from transforms.specs import action_shaped_full, carry_to_next, parent_dt
 Tensor = torch.Tensor
 
 MODES = ("stopping", "one_step")
+BEYOND_S_MAX = ("push", "hold", "ramp")
 
 
 # ----------------------------------------------------------------------------- pure math
@@ -133,7 +145,8 @@ def one_step_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: flo
 
 
 def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: float, dt: float,
-                     mode: str = "stopping", accel_max: Tensor | float | None = None) -> Tensor:
+                     mode: str = "stopping", accel_max: Tensor | float | None = None,
+                     beyond: str = "push") -> Tensor:
     """Smallest acceleration that keeps the gap to the head ``<= s_max``.
 
     ``"stopping"`` mode (mirror image of the s_min rule): after this step the CAV can
@@ -142,11 +155,14 @@ def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: 
     ``h + w dt + D(w, accel_max) <= s_max`` with the head at constant speed. Without
     ``accel_max`` (or in ``"one_step"`` mode) only the next gap is predicted:
     ``h + (v_H - v') dt <= s_max`` (``"one_step"``: the original
-    ``h + (v_H - v) dt - a dt^2 / 2 <= s_max``).
+    ``h + (v_H - v) dt - a dt^2 / 2 <= s_max``). With ``beyond="hold"`` a gap already
+    beyond ``s_max`` is only kept from growing (no room is demanded back).
     """
     if mode == "one_step":
         return 2.0 * (head_gap + (head_speed - v) * dt - s_max) / dt**2
     room = s_max - head_gap
+    if beyond == "hold":
+        room = room.clamp_min(0.0)
     if accel_max is None:
         w = room / dt
     else:
@@ -158,16 +174,29 @@ def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: 
 def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Tensor,
                 head_gap: Tensor | None, head_speed: Tensor | None, low: Tensor | float, high: Tensor | float,
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
-                leader_brake: Tensor | float | None = None) -> Tensor:
+                leader_brake: Tensor | float | None = None, beyond_s_max: str = "push",
+                accel: Tensor | None = None, ramp_jerk: float = 1.0) -> Tensor:
     """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
 
-    ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``.
+    ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``;
+    ``beyond_s_max`` (``"push"`` / ``"hold"`` / ``"ramp"``, the last with the CAV's current
+    acceleration ``accel`` and ``ramp_jerk``): see the module docstring.
     """
     low = torch.as_tensor(low, dtype=action.dtype, device=action.device)
     high = torch.as_tensor(high, dtype=action.dtype, device=action.device)
     a = torch.minimum(torch.maximum(action, low), high)
     if s_max is not None:
-        a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high)
+        if beyond_s_max == "ramp":
+            if accel is None:
+                raise ValueError("safe_action: beyond_s_max='ramp' needs the CAV's current acceleration (accel=)")
+            held = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
+                                    beyond="hold")
+            pushed = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high)
+            a_lo = torch.where(head_gap > s_max, torch.maximum(held, torch.minimum(pushed, accel + ramp_jerk * dt)),
+                               pushed)
+        else:
+            a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
+                                    beyond=beyond_s_max)
         a = torch.maximum(a, torch.minimum(a_lo, high))
     if s_min is not None:
         if mode == "one_step":
@@ -219,6 +248,11 @@ class SafetyLayer(Transform):
         dt: step length (s); ``None`` reads ``dt`` from the parent env.
         mode: ``"stopping"`` (default, collision-free under bounded braking, see the
             module docstring) or ``"one_step"`` (the original rule, for reproduction).
+        beyond_s_max: ``"push"`` (default: a head gap beyond ``s_max`` is closed at the
+            maximum acceleration), ``"hold"`` (it is only kept from growing; the command
+            closes it) or ``"ramp"`` (held, and closed with a demand that rises from the
+            current acceleration at ``ramp_jerk``); ``"stopping"`` mode only.
+        ramp_jerk: the ``"ramp"`` demand's rate of rise (m/s^3, > 0).
         leader_brake: braking bound (> 0, m/s^2) of each CAV's leader, a float or one
             value per CAV; ``None`` reads it from the parent's ``scenario``
             (:func:`scenario_leader_brake`), else uses the CAV's own bound.
@@ -244,14 +278,19 @@ class SafetyLayer(Transform):
         "leader_speed": ("cav", "leader_speed"),
         "head_gap": ("cav", "head_gap"),
         "head_speed": ("cav", "head_speed"),
+        "accel": ("cav", "accel"),
     }
 
     def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
                  mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
-                 action_key: NestedKey = "action", cav_keys: dict[str, NestedKey] | None = None,
+                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, action_key: NestedKey = "action", cav_keys: dict[str, NestedKey] | None = None,
                  out_keys: Sequence[NestedKey] = (("safety", "clipped"), ("safety", "delta"))):
         if mode not in MODES:
             raise ValueError(f"SafetyLayer: mode={mode!r} is invalid; allowed: {list(MODES)}")
+        if beyond_s_max not in BEYOND_S_MAX:
+            raise ValueError(f"SafetyLayer: beyond_s_max={beyond_s_max!r} is invalid; allowed: {list(BEYOND_S_MAX)}")
+        if not ramp_jerk > 0:
+            raise ValueError(f"SafetyLayer: ramp_jerk={ramp_jerk!r} is invalid; allowed: > 0 (m/s^3)")
         if s_min is not None and not s_min > 0:
             raise ValueError(f"SafetyLayer: s_min={s_min!r} is invalid; allowed: > 0 or None")
         if s_max is not None and not s_max > 0:
@@ -273,7 +312,8 @@ class SafetyLayer(Transform):
         if len(out_keys) != 2:
             raise ValueError(f"SafetyLayer: out_keys={out_keys!r} is invalid; allowed: two keys (clipped, delta)")
         super().__init__(in_keys=[], out_keys=list(out_keys), in_keys_inv=[action_key], out_keys_inv=[action_key])
-        self.s_min, self.s_max, self.mode = s_min, s_max, mode
+        self.s_min, self.s_max, self.mode, self.beyond_s_max = s_min, s_max, mode, beyond_s_max
+        self.ramp_jerk = float(ramp_jerk)
         self._dt = dt
         self._leader_brake = leader_brake
         self.action_key = action_key
@@ -346,6 +386,8 @@ class SafetyLayer(Transform):
             head_speed=tensordict.get(k["head_speed"]) if need_head else None,
             low=low, high=high, dt=self.dt, s_min=self.s_min, s_max=self.s_max, mode=self.mode,
             leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
+            beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk,
+            accel=tensordict.get(k["accel"]) if need_head and self.beyond_s_max == "ramp" else None,
         )
         commanded = torch.minimum(torch.maximum(action, low), high)
         if self.active_rows is not None:
@@ -376,4 +418,4 @@ class SafetyLayer(Transform):
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(s_min={self.s_min}, s_max={self.s_max}, mode={self.mode!r}, "
-                f"dt={self._dt})")
+                f"beyond_s_max={self.beyond_s_max!r}, dt={self._dt})")

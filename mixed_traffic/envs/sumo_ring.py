@@ -478,7 +478,7 @@ class SumoRingEnv(EnvBase):
         if sc.sumo_safety:
             cav["override"] = torch.as_tensor(self._override, **f).unsqueeze(0)
         out = {
-            "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg),
+            "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg, accel=acc),
             "cav": cav,
             "traffic": {
                 "pos": pos, "speed": vel, "accel": acc, "gap": g,

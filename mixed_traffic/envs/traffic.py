@@ -39,7 +39,7 @@ Tensor = torch.Tensor
 
 
 # ----------------------------------------------------------------------------- shared pieces
-OBS_FEATURES = {"seed": None, "relative": 7, "wave": 5}
+OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5}
 
 
 def observation_dim(sc: TrafficScenario) -> int:
@@ -111,11 +111,13 @@ def head_gaps(sc: TrafficScenario, pos: Tensor, ring_length: Tensor | float | No
 
 
 def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor,
-            *, ring_length: Tensor | float | None = None, speed_avg: Tensor | None = None) -> Tensor:
+            *, ring_length: Tensor | float | None = None, speed_avg: Tensor | None = None,
+            accel: Tensor | None = None) -> Tensor:
     """The policy input (see ``TrafficScenario.observation``).
 
     ``ring_length`` (per row, ``[..., 1]``) defaults to the scenario's; ``speed_avg``
-    (each CAV's mean speed, ``[..., n_cav]``) is needed by ``observation="wave"``.
+    (each CAV's mean speed, ``[..., n_cav]``) is needed by ``observation="wave"``, ``accel``
+    (every vehicle's last acceleration, ``[..., n]``) by ``observation="relative_accel"``.
     """
     L = sc.ring_length if ring_length is None else ring_length
     if sc.observation == "seed":
@@ -133,6 +135,12 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     else:
         feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos, L) / (2 * sc.s_max),
                  (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
+        if sc.observation == "relative_accel":
+            if accel is None:
+                raise ValueError("observe: observation='relative_accel' needs every vehicle's acceleration (accel=)")
+            feats.append(accel[..., [i - 1 for i in ci]] / a_scale)
+        elif sc.observation == "relative_no_speed":
+            feats = feats[1:]
     return torch.stack(feats, dim=-1).flatten(-2)
 
 
@@ -324,7 +332,7 @@ class TrafficEnv(EnvBase):
             traffic["ring_length"] = self.ring_len
         return {
             "observation": observe(sc, self.pos, self.vel, gap, cav_acc, v_eq, ring_length=self.ring_len,
-                                   speed_avg=speed_avg),
+                                   speed_avg=speed_avg, accel=self.acc),
             "cav": cav,
             "traffic": traffic,
         }

@@ -62,19 +62,42 @@ def cut_graph(env) -> None:
                 setattr(obj, name, v.detach())
 
 
+def deterministic_action(actor):
+    """``td -> td`` writing the actor's deterministic action only (no log-prob, no distribution entries).
+
+    For a ``ProbabilisticActor`` that is ``get_dist(td).deterministic_sample``, the action
+    ``actor(td)`` gives under ``ExplorationType.DETERMINISTIC``, without the log-prob and the
+    ``loc``/``scale`` writes nothing in a window reads (about 8 % of an APG step); any other
+    module is returned as is.
+    """
+    keys = list(getattr(actor, "dist_sample_keys", None) or ())
+    if not hasattr(actor, "get_dist") or len(keys) != 1:
+        return actor
+    key = keys[0]
+
+    def act(td):
+        return td.set(key, actor.get_dist(td).deterministic_sample)
+
+    return act
+
+
 def window_loss(env, actor, td, horizon: int, j_ref: torch.Tensor | None, cost_coeff: float,
-                gap_margin: float | None = None):
+                gap_margin: float | None = None, head_gap_max: float | None = None, head_gap_after: float = 0.0):
     """``(loss, last step's tensordict, episode ended)`` of one window of at most ``horizon`` steps from ``td``.
 
     ``loss``: the mean over rows and steps of ``J / j_ref[profile] + cost_coeff * cost`` on the
     platoon (``j_ref`` per profile kind), of ``-reward + cost_coeff * cost`` on the ring
     (``j_ref=None``); with ``gap_margin`` (m) the CAVs' ``("cav", "gap")`` below it adds
     ``cost_coeff * (gap_margin - gap) / gap_margin`` (a margin the policy keeps by itself, not
-    left to the safety layer); differentiable in the actor's parameters.
+    left to the safety layer); with ``head_gap_max`` (m) a ``("cav", "head_gap")`` above it adds
+    ``cost_coeff * (head_gap - head_gap_max) / head_gap_max`` from ``head_gap_after`` seconds into the
+    episode on (the CAV keeps up with the head by itself, also where the layer only holds the gap, and
+    closes a long start gap by then at its own pace); differentiable in the actor's parameters.
     """
     total, steps, ended = 0.0, 0, False
+    act = deterministic_action(actor)
     while steps < horizon and not ended:
-        td = env.step(actor(td))["next"]
+        td = env.step(act(td))["next"]
         if j_ref is None:
             j = -td["reward"].reshape(-1).to(torch.float64)
         else:
@@ -83,6 +106,11 @@ def window_loss(env, actor, td, horizon: int, j_ref: torch.Tensor | None, cost_c
         if gap_margin is not None:
             short = (gap_margin - td["cav", "gap"].to(torch.float64)).clamp_min(0.0) / gap_margin
             c = c + short.reshape(len(c), -1).sum(-1)
+        if head_gap_max is not None:
+            far = (td["cav", "head_gap"].to(torch.float64) - head_gap_max).clamp_min(0.0) / head_gap_max
+            if head_gap_after > 0:
+                far = far * (td["traffic", "time"].to(torch.float64) > head_gap_after)
+            c = c + far.reshape(len(c), -1).sum(-1)
         total = total + j.mean() + cost_coeff * c.mean()
         steps, ended = steps + 1, bool(td["done"].any())
     return total / steps, td, ended
@@ -116,11 +144,20 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     margin = a.get("gap_margin")
     if margin is not None and not float(margin) > 0:
         raise ValueError(f"policy.apg.gap_margin={margin!r} is invalid; allowed: null or > 0 (m)")
+    head_max = a.get("head_gap_max")
+    if head_max is not None and not float(head_max) > 0:
+        raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid; allowed: null or > 0 (m)")
     env = make_transformed_env(cfg, num_envs=a.num_envs, seed=int(cfg.seed) + 7_919, without=without)
     base = env.base_env
     if type(base) not in (PlatoonEnv, TrafficEnv):  # the SUMO backends and the intersection are not differentiable
         raise ValueError(f"policy.apg needs a differentiable torch env (env=deeplcc or the ring, backend torch); "
                          f"got {type(base).__name__}")
+    head_after = float(a.get("head_gap_after") or 0.0)
+    if not head_after >= 0:
+        raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
+    if head_max is not None and type(base) is not TrafficEnv:
+        raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid on {type(base).__name__}; allowed: null "
+                         "(the head gap is the ring's)")
     j_ref = _j_ref(a.J_ref, "policy.apg.J_ref") if type(base) is PlatoonEnv else None
     if j_ref is None and a.J_ref:
         raise ValueError(f"policy.apg.J_ref={dict(a.J_ref)} is invalid on {type(base).__name__}; allowed: {{}} "
@@ -138,7 +175,8 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
                 cut_graph(env)
                 td = td.detach()
                 loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff,
-                                              None if margin is None else float(margin))
+                                              None if margin is None else float(margin),
+                                              None if head_max is None else float(head_max), head_after)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, a.max_grad_norm)
