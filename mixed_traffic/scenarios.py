@@ -51,7 +51,9 @@ class TrafficScenario:
       sees the leader speed up or brake before the gap and the speed difference show it);
     * ``observation="relative_no_speed"``: ``"relative"`` without the CAV's own speed ``v/30``:
       differences and gaps only, so a policy cannot tie its command to the speeds it trained at
-      (the speed still reaches the command through a residual's base controller).
+      (the speed still reaches the command through a residual's base controller);
+    * ``observation="wave_ring"``: ``"wave"`` plus the ring's length / 260 m (what sets the
+      ring's uniform-flow speed, from which FollowerStopper's set point is computed).
     """
 
     name: str = "ring"
@@ -276,8 +278,9 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave"):
-            bad("observation", self.observation, "'seed', 'relative', 'relative_accel', 'relative_no_speed' or 'wave'")
+        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave", "wave_ring"):
+            bad("observation", self.observation,
+                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'wave' or 'wave_ring'")
         if self.observation in ("relative", "relative_accel", "relative_no_speed") and not self.head:
             bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:

@@ -33,6 +33,19 @@ def test_ring_wave_preset_and_specs():
     assert torch.allclose(td["traffic", "ring_length"], torch.full((3, 1), 260.0))
 
 
+def test_wave_ring_observation_adds_each_rows_ring_length():
+    """``observation="wave_ring"``: the wave view plus the episode's ring length / 260 m, per CAV."""
+    kw = dict(batch_size=3, seed=0, ring_length_range=(220.0, 270.0), cav_indices=[0, 11])
+    plain = make_env("ring_wave", **kw)
+    ring = make_env("ring_wave", observation="wave_ring", **kw)
+    a, b = plain.reset(), ring.reset()
+    feats = b["observation"].reshape(3, 2, 6)
+    assert torch.equal(feats[..., :5], a["observation"].reshape(3, 2, 5))
+    assert torch.allclose(feats[..., 5], (b["traffic", "ring_length"] / 260.0).expand(3, 2))
+    assert len(set(b["traffic", "ring_length"].flatten().tolist())) == 3  # drawn per row
+    check_env_specs(ring)
+
+
 def test_ring_length_drawn_per_episode_and_cavs_anywhere():
     env = make_env("ring_wave", batch_size=64, seed=1, ring_length_range=[220, 270], cav_indices=[0, 11])
     check_env_specs(env)

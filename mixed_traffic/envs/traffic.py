@@ -39,7 +39,7 @@ Tensor = torch.Tensor
 
 
 # ----------------------------------------------------------------------------- shared pieces
-OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5}
+OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5, "wave_ring": 6}
 
 
 def observation_dim(sc: TrafficScenario) -> int:
@@ -130,8 +130,11 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     v = speed[..., ci]
     v_lead = speed[..., [i - 1 for i in ci]]
     a_scale = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
-    if sc.observation == "wave":
+    if sc.observation in ("wave", "wave_ring"):
         feats = [v / 10.0, (v_lead - v) / 10.0, gap[..., ci] / 20.0, (speed_avg - v) / 10.0, cav_accel / a_scale]
+        if sc.observation == "wave_ring":  # the ring's length, which sets its uniform-flow speed
+            ring = L if torch.is_tensor(L) else torch.full_like(v[..., :1], float(L))
+            feats.append(ring.expand_as(v) / 260.0)
     else:
         feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos, L) / (2 * sc.s_max),
                  (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
