@@ -192,8 +192,8 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
             held = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
                                     beyond="hold")
             pushed = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high)
-            a_lo = torch.where(head_gap > s_max, torch.maximum(held, torch.minimum(pushed, accel + ramp_jerk * dt)),
-                               pushed)
+            # inside s_max the two bounds are the same, so this is the push rule there
+            a_lo = torch.maximum(held, torch.minimum(pushed, accel + ramp_jerk * dt))
         else:
             a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
                                     beyond=beyond_s_max)

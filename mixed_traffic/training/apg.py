@@ -147,14 +147,14 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     head_max = a.get("head_gap_max")
     if head_max is not None and not float(head_max) > 0:
         raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid; allowed: null or > 0 (m)")
+    head_after = float(a.get("head_gap_after") or 0.0)
+    if not head_after >= 0:
+        raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
     env = make_transformed_env(cfg, num_envs=a.num_envs, seed=int(cfg.seed) + 7_919, without=without)
     base = env.base_env
     if type(base) not in (PlatoonEnv, TrafficEnv):  # the SUMO backends and the intersection are not differentiable
         raise ValueError(f"policy.apg needs a differentiable torch env (env=deeplcc or the ring, backend torch); "
                          f"got {type(base).__name__}")
-    head_after = float(a.get("head_gap_after") or 0.0)
-    if not head_after >= 0:
-        raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
     if head_max is not None and type(base) is not TrafficEnv:
         raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid on {type(base).__name__}; allowed: null "
                          "(the head gap is the ring's)")
