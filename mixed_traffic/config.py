@@ -292,6 +292,26 @@ class APGConfig:
 
 
 @dataclass
+class CEMConfig:
+    """Cross-entropy-method training of the actor on whole-episode scores (``generations: 0``: off).
+
+    Each generation runs ``population`` parameter vectors around the mean for ``episodes``
+    episodes each (one batched rollout) and moves the mean to the best ``elite`` fraction
+    (``mixed_traffic.training.cem``).
+    """
+
+    generations: int = 0
+    population: int = 32
+    episodes: int = 8
+    elite: float = 0.25
+    sigma: float = 0.1  # initial std of the parameter perturbations
+    sigma_min: float = 0.01  # floor of the std (keeps the search from collapsing)
+    cost_coeff: float = 10.0  # score = mean reward - cost_coeff * (mean cost + collided)
+    seconds: float | None = None  # episode length run (s); null: the scenario's
+    score_after: float = 0.0  # the score counts from this time (s) on (a collision before it still counts)
+
+
+@dataclass
 class WarmStartConfig:
     """Warm Start RL: before PPO, fit the actor's deterministic action to an NNMPC's (BC on its closed loop).
 
@@ -323,6 +343,7 @@ class PolicyConfig:
     value_bias_init: float = 0.0  # critic output bias at start (~ expected discounted return)
     warm_start: WarmStartConfig = field(default_factory=WarmStartConfig)
     apg: APGConfig = field(default_factory=APGConfig)
+    cem: CEMConfig = field(default_factory=CEMConfig)
     # observation features computed inside the networks: "none" or "intersection"
     # (normalised observation + ego/agent relational features, see mixed_traffic.envs.intersection)
     features: str = "none"

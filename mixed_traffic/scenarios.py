@@ -43,6 +43,9 @@ class TrafficScenario:
       smoothness, in the spirit of Flow's wave-attenuation reward, which also
       penalises the mean absolute acceleration of the automated vehicles); the env reports it
       as ``J = 1 - r`` with ``J_max = 1``, so ``NonNegativeReward`` gives ``max(r, 0)``;
+    * ``reward="wave_relative"``: the same with ``v_star`` replaced by each row's uniform-flow
+      speed (``envs.traffic.uniform_flow_speed``): 1 is the ring's physical optimum whatever its
+      length, so episodes on rings of different lengths score on one scale;
     * ``observation="wave"``: each CAV's local view ``[v/10, (v_lead - v)/10, gap/20,
       (v_avg - v)/10, a/a_max]`` where ``v_avg`` is its own mean speed over the last
       ``cav_speed_window`` seconds (``("cav", "speed_avg")``);
@@ -53,7 +56,9 @@ class TrafficScenario:
       differences and gaps only, so a policy cannot tie its command to the speeds it trained at
       (the speed still reaches the command through a residual's base controller);
     * ``observation="wave_ring"``: ``"wave"`` plus the ring's length / 260 m (what sets the
-      ring's uniform-flow speed, from which FollowerStopper's set point is computed).
+      ring's uniform-flow speed, from which FollowerStopper's set point is computed);
+    * ``observation="wave_ring_time"``: ``"wave_ring"`` plus the time since the controller
+      engaged (the episode's start) / 600 s, saturating at 1 (what a set-point schedule reads).
     """
 
     name: str = "ring"
@@ -84,7 +89,8 @@ class TrafficScenario:
     ring_length_range: tuple[float, float] | None = None  # per-episode ring length U[low, high]
     init_wave: float = 0.0  # amplitude of a sinusoidal initial gap wave, fraction of the mean gap
     cav_speed_window: float = 38.0  # s, window of ("cav", "speed_avg") (no-head scenarios)
-    reward: str = "deeplcc"  # "deeplcc" (stage cost J) or "wave" (average speed and smoothness)
+    reward: str = "deeplcc"  # "deeplcc" (stage cost J), "wave" (average speed and smoothness) or
+    # "wave_relative" (the same over the ring's uniform-flow speed)
     # SUMO's speed mode 95 for the CAVs: the executed acceleration is capped by SUMO's Krauss safe
     # speed and the accel/decel bounds (torch: mixed_traffic.physics.sumo_speed_mode_95; SUMO: the
     # mode itself); both backends then emit ("cav", "override") and count env.override_steps
@@ -133,7 +139,7 @@ class TrafficScenario:
     @property
     def J_max(self) -> float:
         """Worst-case DeeP-LCC cost of one step (maps the reward into [0, 1]); 1 for ``reward="wave"``."""
-        if self.reward == "wave":
+        if self.reward in ("wave", "wave_relative"):
             return 1.0
         a_abs = max(abs(self.cav_accel_bounds[0]), abs(self.cav_accel_bounds[1]))
         return (self.weight_v * (self.n_vehicles - 1) * self.v_dev_max**2
@@ -247,8 +253,11 @@ class TrafficScenario:
             bad("init_wave", self.init_wave, "[0, 1) (fraction of the mean gap)")
         if not self.cav_speed_window >= self.dt:
             bad("cav_speed_window", self.cav_speed_window, f">= dt ({self.dt})")
-        if self.reward not in ("deeplcc", "wave"):
-            bad("reward", self.reward, "'deeplcc' or 'wave'")
+        if self.reward not in ("deeplcc", "wave", "wave_relative"):
+            bad("reward", self.reward, "'deeplcc', 'wave' or 'wave_relative'")
+        if self.reward == "wave_relative" and not (self.is_ring and not self.head and self.hdv_model == "idm"):
+            bad("reward", self.reward, "'wave_relative' on a ring without a head of IDM humans only (its scale is "
+                "their uniform flow)")
         if self.init_spacing is not None and self.init_spacing <= 0:
             bad("init_spacing", self.init_spacing, "> 0 or None")
         if self.init_spacing_range is not None:
@@ -278,9 +287,11 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave", "wave_ring"):
+        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave", "wave_ring",
+                                    "wave_ring_time"):
             bad("observation", self.observation,
-                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'wave' or 'wave_ring'")
+                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'wave', 'wave_ring' or "
+                "'wave_ring_time'")
         if self.observation in ("relative", "relative_accel", "relative_no_speed") and not self.head:
             bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:

@@ -55,6 +55,22 @@ def test_same_seed_is_the_same_noisy_episode_in_both_backends(overrides):
     assert float(gap.sum()) + 22 * 5.0 == pytest.approx(L, abs=1e-3)
 
 
+def test_timed_observation_and_relative_reward_agree_across_backends():
+    """``observation="wave_ring_time"`` and ``reward="wave_relative"`` (what the CEM damper trains on)
+    give the same entries in SUMO as in torch on the same seeded episode."""
+    kw = dict(seed=3, ring_length_range=[220.0, 270.0], observation="wave_ring_time", reward="wave_relative")
+    to = make_env("ring_wave", batch_size=1, **kw)
+    su = make_env("ring_wave", backend="sumo", **kw)
+    try:
+        rt = to.rollout(50, make_damper("idm", to), break_when_any_done=False)
+        rs = su.rollout(50, make_damper("idm", su), break_when_any_done=False)
+    finally:
+        su.close()
+    assert torch.allclose(rt["next", "observation"], rs["next", "observation"], atol=1e-4)
+    assert torch.allclose(rt["next", "reward"], rs["next", "reward"], atol=1e-4)
+    assert float(rs["next", "observation"][0, -1, 6]) == pytest.approx(5.0 / 600.0, abs=1e-6)
+
+
 def test_sumo_executes_the_human_noise_on_its_own_car_following_command():
     """Executed speed minus the speed SUMO's own IDM commands (``getFollowSpeed`` on the state
     before the step) is the scenario's N(0, 0.2) acceleration noise times dt."""

@@ -46,6 +46,22 @@ def test_wave_ring_observation_adds_each_rows_ring_length():
     check_env_specs(ring)
 
 
+def test_wave_ring_time_observation_adds_the_saturating_time():
+    kw = dict(batch_size=2, seed=0, cav_indices=[0, 11], episode_seconds=700.0)
+    act = lambda td: td.set("action", torch.zeros(2, 2))  # noqa: E731
+    a = make_env("ring_wave", observation="wave_ring", **kw).rollout(3, act)
+    timed = make_env("ring_wave", observation="wave_ring_time", **kw)
+    b = timed.rollout(3, act)
+    fa, fb = a["next", "observation"].reshape(2, 3, 2, 6), b["next", "observation"].reshape(2, 3, 2, 7)
+    assert torch.equal(fb[..., :6], fa)
+    assert torch.allclose(fb[0, :, 0, 6], torch.tensor([0.1, 0.2, 0.3]) / 600.0)
+    td = timed.reset()
+    timed.step_count[:] = 6500  # past 600 s the feature stays at 1
+    td = timed.step(td.set("action", torch.zeros(2, 2)))["next"]
+    assert torch.equal(td["observation"].reshape(2, 2, 7)[..., 6], torch.ones(2, 2))
+    check_env_specs(timed)
+
+
 def test_ring_length_drawn_per_episode_and_cavs_anywhere():
     env = make_env("ring_wave", batch_size=64, seed=1, ring_length_range=[220, 270], cav_indices=[0, 11])
     check_env_specs(env)
@@ -113,6 +129,19 @@ def test_wave_reward_is_speed_minus_spread_minus_accel():
     assert float(td["next", "reward"][0, -1, 0]) == pytest.approx(float(r) - 1.0, abs=1e-5)
 
 
+def test_wave_relative_reward_scales_each_row_by_its_uniform_flow_speed():
+    env = make_env("ring_wave", batch_size=3, seed=0, reward="wave_relative", ring_length_range=[210.0, 285.0])
+    td = env.rollout(2, lambda td: td.set("action", torch.full((3, 1), 1.5)))
+    L = td["next", "traffic", "ring_length"][:, -1, 0]
+    assert float(L.max() - L.min()) > 5.0  # rows on different rings
+    v, a = td["next", "traffic", "speed"][:, -1], td["next", "cav", "accel"][:, -1, 0]
+    U = torch.tensor([uniform_flow_speed(env.scenario, float(x)) for x in L])
+    r = v.mean(-1) / U - 0.2 * v.std(-1, unbiased=False) / U - 0.3 * a.abs() / 3
+    assert torch.allclose(td["next", "reward"][:, -1, 0], (r - 1.0).float(), atol=1e-5)
+    with pytest.raises(ValueError, match="reward"):
+        make_env("ring", reward="wave_relative")  # a ring with a scripted head has no uniform flow to scale by
+
+
 def test_overrides_need_no_plus():
     cfg = compose(["env=ring_wave", "env.overrides.ring_length=230", "env.overrides.cav_indices=[0,11]"])
     assert cfg.env.overrides.ring_length == 230 and list(cfg.env.overrides.cav_indices) == [0, 11]
@@ -160,6 +189,23 @@ def test_follower_stopper_regions_by_hand():
     assert float(a) == pytest.approx((2.0 - 1.9) / 0.1, abs=1e-4)
     a = fs(torch.tensor([[5.625]]), torch.tensor([[3.9]]), torch.tensor([[4.0]]), torch.tensor([[260.0]]))
     assert float(a) == pytest.approx(3.0)  # (5 - 3.9) / 0.1 clipped to the upper bound
+
+
+def test_follower_stopper_ramp_moves_the_set_point_in_episode_time():
+    env = make_env("ring_wave", batch_size=3, seed=0)
+    ramped = make_damper("follower_stopper", env, u_ratio=0.8, ramp_to=1.0, ramp_start=100.0, ramp_end=200.0)
+    assert ("traffic", "time") in ramped.in_keys
+    far = torch.full((3, 1), 50.0)  # far from the leader: v_cmd = U
+    speed, lead, L = torch.full((3, 1), 1.0), torch.full((3, 1), 4.0), torch.full((3, 1), 260.0)
+    t = torch.tensor([[50.0], [150.0], [250.0]])
+    U = uniform_flow_speed(env.scenario, 260.0)
+    ratio = torch.tensor([0.8, 0.9, 1.0])
+    fs = ramped.module
+    fs.high = 100.0  # unclipped, to read the set point
+    a = fs(far, speed, lead, L, t)[:, 0]
+    assert torch.allclose(a, ((ratio * U - 1.0) / 0.1).float(), rtol=1e-4)
+    with pytest.raises(ValueError, match="ramp_end"):
+        make_damper("follower_stopper", env, ramp_to=1.0, ramp_start=200.0, ramp_end=100.0)
 
 
 def test_follower_stopper_default_set_point_is_uniform_flow():

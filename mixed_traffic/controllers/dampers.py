@@ -56,14 +56,24 @@ class FollowerStopper(nn.Module):
     ``U`` (the set point, chosen by the operator in the field test) is ``u_ratio`` times
     the uniform-flow speed of the row's ring (``("traffic", "ring_length")``) computed
     from the humans' IDM, unless a fixed ``U`` is given.
+
+    With ``ramp_to`` the ratio follows a schedule in episode time (``("traffic", "time")``):
+    ``u_ratio`` until ``ramp_start``, linear to ``ramp_to`` at ``ramp_end``, ``ramp_to`` after
+    it (s): a low set point dissolves the start's wave, then the set point rises to near
+    the uniform flow, which the dissolved ring holds (``docs/wave.md``).
     """
 
     DX0 = (4.5, 5.25, 6.0)
     D = (1.5, 1.0, 0.5)
 
     def __init__(self, *, dt: float, low: float, high: float, U: float | None = None, u_ratio: float = 1.0,
-                 n_vehicles: int = 22, vehicle_length: float = 5.0, hdv_params: dict | None = None):
+                 n_vehicles: int = 22, vehicle_length: float = 5.0, hdv_params: dict | None = None,
+                 ramp_to: float | None = None, ramp_start: float = 150.0, ramp_end: float = 300.0):
         super().__init__()
+        if ramp_to is not None and not (ramp_to > 0 and 0 <= ramp_start < ramp_end):
+            raise ValueError(f"FollowerStopper: ramp_to={ramp_to!r}, ramp_start={ramp_start!r}, ramp_end={ramp_end!r} "
+                             "are invalid; allowed: ramp_to > 0 and 0 <= ramp_start < ramp_end (s)")
+        self.ramp = None if ramp_to is None else (float(ramp_to), float(ramp_start), float(ramp_end))
         if U is None and hdv_params is None:
             raise ValueError("FollowerStopper: give U (m/s) or hdv_params (to compute the uniform-flow speed)")
         if U is not None and not U > 0:
@@ -93,8 +103,13 @@ class FollowerStopper(nn.Module):
                                         torch.where(gap <= dx3, w + (U - w) * (gap - dx2) / (dx3 - dx2), U)))
         return v_cmd
 
-    def forward(self, gap: Tensor, speed: Tensor, leader_speed: Tensor, ring_length: Tensor) -> Tensor:
+    def forward(self, gap: Tensor, speed: Tensor, leader_speed: Tensor, ring_length: Tensor,
+                time: Tensor | None = None) -> Tensor:
         U = self.set_point(ring_length).expand_as(speed)
+        if self.ramp is not None:
+            to, t1, t2 = self.ramp
+            f = ((time - t1) / (t2 - t1)).clamp(0.0, 1.0).expand_as(speed)
+            U = U * (1.0 + (to / self.u_ratio - 1.0) * f)
         v_cmd = self.command(gap, speed, leader_speed, U)
         return ((v_cmd - speed) / self.dt).clamp(self.low, self.high)
 
@@ -169,7 +184,8 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
         env: a car-following env (bounds from its action spec, humans' model and ``dt``
             from its scenario).
         seed: generator seed of the ``human`` controller's noise.
-        **kwargs: controller arguments (``U``, ``u_ratio`` for ``follower_stopper``;
+        **kwargs: controller arguments (``U``, ``u_ratio``, ``ramp_to``, ``ramp_start``, ``ramp_end`` for
+            ``follower_stopper``;
             ``g_l``, ``g_u``, ``v_catch``, ``gamma`` for ``pi_saturation``).
     """
     if name not in DAMPERS:
@@ -187,7 +203,8 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
             raise ValueError("follower_stopper: give U (m/s); the uniform-flow set point needs IDM humans")
         module = FollowerStopper(dt=sc.dt, low=low, high=high, n_vehicles=sc.n_vehicles,
                                  vehicle_length=sc.vehicle_length, hdv_params=params, **kwargs)
-        return TensorDictModule(module, in_keys=[*base, ("traffic", "ring_length")], out_keys=["action"])
+        keys = [*base, ("traffic", "ring_length")] + ([("traffic", "time")] if module.ramp is not None else [])
+        return TensorDictModule(module, in_keys=keys, out_keys=["action"])
     if sc.head:
         raise ValueError("pi_saturation: needs ('cav', 'speed_avg'), which rings without a head provide "
                          "(head=False, e.g. 'ring_wave')")

@@ -63,7 +63,14 @@ from mixed_traffic.envs.sumo_net import (
     read_ring_network,
     write_routes,
 )
-from mixed_traffic.envs.traffic import head_gaps, initial_positions, make_specs, observe, stage_terms
+from mixed_traffic.envs.traffic import (
+    head_gaps,
+    initial_positions,
+    make_specs,
+    observe,
+    stage_terms,
+    uniform_flow_speed,
+)
 from mixed_traffic.physics import IDMParams, KraussParams, leader_gaps, saturate_accel
 from mixed_traffic.scenarios import TrafficScenario, get_scenario
 
@@ -466,7 +473,8 @@ class SumoRingEnv(EnvBase):
         ci = self._cav
         cav_acc = acc[:, ci]
         L = torch.tensor([[self.ring_length]], **f)
-        j, cost = stage_terms(sc, vel, g, cav_acc, v_eq)
+        v_ref = uniform_flow_speed(sc, L).to(**f) if sc.reward == "wave_relative" else None
+        j, cost = stage_terms(sc, vel, g, cav_acc, v_eq, v_ref)
         cav = {"gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, [(i - 1) % sc.n_vehicles for i in ci]],
                "accel": cav_acc}
         speed_avg = None
@@ -478,7 +486,8 @@ class SumoRingEnv(EnvBase):
         if sc.sumo_safety:
             cav["override"] = torch.as_tensor(self._override, **f).unsqueeze(0)
         out = {
-            "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg, accel=acc),
+            "observation": observe(sc, pos, vel, g, cav_acc, v_eq, ring_length=L, speed_avg=speed_avg, accel=acc,
+                                   time=torch.tensor([[self.step_count * sc.dt]], **f)),
             "cav": cav,
             "traffic": {
                 "pos": pos, "speed": vel, "accel": acc, "gap": g,

@@ -28,6 +28,7 @@ from mixed_traffic.physics import (
     KraussParams,
     car_following_accel,
     idm_accel,
+    idm_equilibrium_speed,
     integrate,
     leader_gaps,
     params_as_tensors,
@@ -39,7 +40,8 @@ Tensor = torch.Tensor
 
 
 # ----------------------------------------------------------------------------- shared pieces
-OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5, "wave_ring": 6}
+OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5, "wave_ring": 6,
+                "wave_ring_time": 7}
 
 
 def observation_dim(sc: TrafficScenario) -> int:
@@ -78,19 +80,36 @@ def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=t
     return {"observation": observation, "action": action, "reward": reward, "done": done}
 
 
-def stage_terms(sc: TrafficScenario, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor) -> tuple[Tensor, Tensor]:
+def uniform_flow_speed(sc: TrafficScenario, ring_length: Tensor | float) -> Tensor:
+    """Speed of the ring's uniform flow: the humans' nominal IDM in equilibrium at gap ``L / n - l``.
+
+    The physical optimum of a wave damper on a ring of length ``L`` (every car at the same
+    gap and speed); per row when ``ring_length`` is a tensor.
+    """
+    p = dataclasses.asdict(sc.hdv_defaults())
+    return idm_equilibrium_speed(torch.as_tensor(ring_length, dtype=torch.float64) / sc.n_vehicles - sc.vehicle_length,
+                                 **p)
+
+
+def stage_terms(sc: TrafficScenario, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor,
+                v_ref: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Stage cost J and the constraint cost, both ``[..., 1]``.
 
     ``reward="deeplcc"``: J = w_v sum_{i != head} (v_i - v_eq)^2 + w_s sum_cav clip(s - s*, +-clip)^2
     + w_u sum_cav a^2 (every vehicle's speed counts when there is no head).
     ``reward="wave"``: J = 1 - r, r = w_v mean(v)/v* - w_s std(v)/v* - w_u sum_cav |a|/a_max.
+    ``reward="wave_relative"``: the same with ``v* = v_ref`` (``[..., 1]``, per row: the ring's
+    uniform-flow speed), so rings of different lengths score on one scale (1 = uniform flow).
     cost = sum_cav max(0, s_min - s) / s_min  (gap clamped at 0, so each term is in [0, 1])
     """
     cav_gap = gap[..., list(sc.cav_indices)]
-    if sc.reward == "wave":
+    if sc.reward in ("wave", "wave_relative"):
         a_max = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
-        r = (sc.weight_v * speed.mean(-1, keepdim=True) / sc.v_star
-             - sc.weight_s * speed.std(-1, unbiased=False, keepdim=True) / sc.v_star
+        if sc.reward == "wave_relative" and v_ref is None:
+            raise ValueError("stage_terms: reward='wave_relative' needs the ring's uniform-flow speed (v_ref=)")
+        scale = sc.v_star if sc.reward == "wave" else v_ref.to(speed.dtype)
+        r = (sc.weight_v * speed.mean(-1, keepdim=True) / scale
+             - sc.weight_s * speed.std(-1, unbiased=False, keepdim=True) / scale
              - sc.weight_u * cav_accel.abs().sum(-1, keepdim=True) / a_max)
         j = 1.0 - r
     else:
@@ -112,7 +131,7 @@ def head_gaps(sc: TrafficScenario, pos: Tensor, ring_length: Tensor | float | No
 
 def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor,
             *, ring_length: Tensor | float | None = None, speed_avg: Tensor | None = None,
-            accel: Tensor | None = None) -> Tensor:
+            accel: Tensor | None = None, time: Tensor | None = None) -> Tensor:
     """The policy input (see ``TrafficScenario.observation``).
 
     ``ring_length`` (per row, ``[..., 1]``) defaults to the scenario's; ``speed_avg``
@@ -130,11 +149,15 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
     v = speed[..., ci]
     v_lead = speed[..., [i - 1 for i in ci]]
     a_scale = max(abs(sc.cav_accel_bounds[0]), abs(sc.cav_accel_bounds[1]))
-    if sc.observation in ("wave", "wave_ring"):
+    if sc.observation in ("wave", "wave_ring", "wave_ring_time"):
         feats = [v / 10.0, (v_lead - v) / 10.0, gap[..., ci] / 20.0, (speed_avg - v) / 10.0, cav_accel / a_scale]
-        if sc.observation == "wave_ring":  # the ring's length, which sets its uniform-flow speed
+        if sc.observation != "wave":  # the ring's length, which sets its uniform-flow speed
             ring = L if torch.is_tensor(L) else torch.full_like(v[..., :1], float(L))
             feats.append(ring.expand_as(v) / 260.0)
+        if sc.observation == "wave_ring_time":  # time since the controller engaged, saturating at 600 s
+            if time is None:
+                raise ValueError("observe: observation='wave_ring_time' needs the episode time (time=)")
+            feats.append((time / 600.0).clamp(0.0, 1.0).expand_as(v))
     else:
         feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos, L) / (2 * sc.s_max),
                  (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
@@ -236,6 +259,7 @@ class TrafficEnv(EnvBase):
         self.J_max = sc.J_max
         self.profile = sc.make_profile()
         self.rng = torch.Generator().manual_seed(0)
+        self.start_period: int | None = None  # share_starts
         B, n = batch_size, sc.n_vehicles
         specs = make_specs(sc, (B,), device=self.device)
         self.observation_spec = specs["observation"]
@@ -271,6 +295,7 @@ class TrafficEnv(EnvBase):
         self.head_hist = torch.zeros(B, self._window, **f)
         self.head_sum = torch.zeros(B, **f)
         self.ring_len = torch.full((B, 1), float(sc.ring_length), **f)
+        self.v_ref = uniform_flow_speed(sc, self.ring_len).to(**f) if sc.reward == "wave_relative" else None
         self.cav_hist = torch.zeros(B, self._cav_window, sc.n_cav, **f)
         self.cav_sum = torch.zeros(B, sc.n_cav, **f)
 
@@ -335,7 +360,7 @@ class TrafficEnv(EnvBase):
             traffic["ring_length"] = self.ring_len
         return {
             "observation": observe(sc, self.pos, self.vel, gap, cav_acc, v_eq, ring_length=self.ring_len,
-                                   speed_avg=speed_avg, accel=self.acc),
+                                   speed_avg=speed_avg, accel=self.acc, time=traffic["time"]),
             "cav": cav,
             "traffic": traffic,
         }
@@ -357,6 +382,36 @@ class TrafficEnv(EnvBase):
         return self.profile.sample(int(rows.numel()), self.rng).to(self.device)
 
     # ------------------------------------------------------------------ EnvBase API
+    def share_starts(self, period: int | None) -> None:
+        """Start row ``i`` in the same state as row ``i % period`` (common random numbers).
+
+        From the next reset on, rows ``i, i + period, i + 2 period, ...`` start the same
+        episode: ring length, positions, speeds, the humans' parameters and the head profile's;
+        only the humans' per-step noise differs. Comparing policies row block by row block
+        then compares them on the same episodes (``mixed_traffic.training.cem`` scores its
+        candidates so). ``None`` switches it off.
+        """
+        B = self.batch_size[0]
+        if period is not None and not (isinstance(period, int) and 1 <= period <= B and B % period == 0):
+            raise ValueError(f"share_starts: period={period!r} is invalid; allowed: None or a divisor of the "
+                             f"batch size {B}")
+        self.start_period = period
+
+    def _share_starts(self, mask: Tensor) -> None:
+        B = self.batch_size[0]
+        rows = torch.arange(B, device=self.device)
+        src = rows % self.start_period
+        copy = mask & mask[src] & (rows != src)  # the source row starts a new episode in the same reset
+        if not bool(copy.any()):
+            return
+        dst, src = rows[copy], src[copy]
+        for name in ("pos", "vel", "ring_len", "v_ref", "profile_params"):
+            t = getattr(self, name)
+            if t is not None:
+                t[dst] = t[src]
+        for t in self.hdv_params.values():
+            t[dst] = t[src]
+
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed) if seed is not None else torch.seed() % (2**63))
 
@@ -371,6 +426,8 @@ class TrafficEnv(EnvBase):
         k = int(idx.numel())
         if k:
             self.pos[idx], self.ring_len[idx] = self._initial_positions(idx)
+            if self.v_ref is not None:
+                self.v_ref[idx] = uniform_flow_speed(sc, self.ring_len[idx]).to(self.v_ref.dtype)
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
@@ -381,6 +438,8 @@ class TrafficEnv(EnvBase):
                     if name in base:
                         noise = 1.0 + sc.hdv_param_noise * (2 * torch.rand(k, sc.n_vehicles, generator=self.rng) - 1)
                         self.hdv_params[name][idx] = base[name] * noise.to(self.device)
+            if self.start_period:
+                self._share_starts(mask)
             self.head_hist[idx] = 0.0
             self.head_sum[idx] = 0.0
             self._push_head_speed_rows(idx)
@@ -391,7 +450,7 @@ class TrafficEnv(EnvBase):
             self._override[idx] = 0.0
         gap = self._gaps(self.pos)
         v_eq = self._v_eq()
-        j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq)
+        j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq, self.v_ref)
         out = self._output(gap, v_eq, j)
         false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
         out.update(done=false, terminated=false.clone(), truncated=false.clone(), collision=false.clone())
@@ -469,7 +528,7 @@ class TrafficEnv(EnvBase):
         if sc.is_ring:
             collision = collision | (new_gap[:, :1] <= 0)
         v_eq = self._v_eq()
-        j, cost = stage_terms(sc, new_vel, new_gap, executed[:, self._cav], v_eq)
+        j, cost = stage_terms(sc, new_vel, new_gap, executed[:, self._cav], v_eq, self.v_ref)
         truncated = (self.step_count >= sc.max_steps).unsqueeze(-1)
         out = self._output(new_gap, v_eq, j)
         out.update(reward=-j, cost=cost, collision=collision, terminated=collision,

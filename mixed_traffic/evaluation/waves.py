@@ -31,7 +31,6 @@ The reference speed is the uniform-flow speed of the ring (every car at gap
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -43,7 +42,6 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mixed_traffic.evaluation.harness import first_done_mask
-from mixed_traffic.physics import idm_equilibrium_speed
 
 WAVE_METRICS = ("mean_speed", "speed_std", "hard_brakes_per_vkm", "fuel_ml_per_vkm", "throughput", "min_gap",
                 "cav_min_gap", "collision", "intervention")
@@ -57,10 +55,10 @@ def fuel_rate(v: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
 
 
 def uniform_flow_speed(scenario, ring_length: float) -> float:
-    """Speed of the ring's uniform flow from the humans' IDM at gap ``L / n - l``."""
-    p = dataclasses.asdict(scenario.hdv_defaults())
-    gap = ring_length / scenario.n_vehicles - scenario.vehicle_length
-    return float(idm_equilibrium_speed(gap, **p))
+    """Speed of the ring's uniform flow from the humans' IDM at gap ``L / n - l`` (a float)."""
+    from mixed_traffic.envs.traffic import uniform_flow_speed as per_row
+
+    return float(per_row(scenario, float(ring_length)))
 
 
 def hard_brake_events(accel: torch.Tensor, threshold: float, mask: torch.Tensor) -> torch.Tensor:

@@ -177,16 +177,21 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         from mixed_traffic.controllers.deeplcc.rlmpc import warm_start_actor
 
         warm_start_actor(actor, env, ws.nnmpc, frames=ws.frames, epochs=ws.epochs, lr=ws.lr, seed=cfg.seed)
+    pretrained = {}  # what the trainers before PPO report, kept in summary.json
     if cfg.policy.get("apg") is not None and cfg.policy.apg.iterations and resume is None:
         from mixed_traffic.training.apg import apg_pretrain
 
-        apg_pretrain(actor, cfg)
+        pretrained["apg"] = apg_pretrain(actor, cfg)
+    if cfg.policy.get("cem") is not None and cfg.policy.cem.generations and resume is None:
+        from mixed_traffic.training.cem import cem_pretrain
+
+        pretrained["cem"] = cem_pretrain(actor, cfg)
     aux = AuxiliaryLosses(cfg, actor, pretrain=resume is None)  # before the run's clock starts
     two_critics = hasattr(loss_module, "update_lambda") and loss_module.cost_critic_network is not None
     scale = float(cfg.loss.get("reward_scale", 1.0))
     optim = torch.optim.Adam(loss_module.parameters(), lr=tc.lr)
     collector, fpb, n_iters = make_collector(cfg, env, actor, resume=resume)
-    if tc.total_frames == 0:  # no PPO batches: e.g. a policy trained by policy.apg alone
+    if tc.total_frames == 0:  # no PPO batches: e.g. a policy trained by policy.apg or policy.cem alone
         n_iters = 0
     if not single:
         env.close()  # only its specs were needed; a SUMO one would hold this process's libsumo
@@ -287,7 +292,7 @@ def train_on_policy(cfg: DictConfig, out_dir, resume: dict | None = None) -> dic
         run.close()
     summary = {"name": cfg.name, "seed": cfg.seed, "algo": cfg.loss.name, "frames": frames,
                "iterations": it + 1 if n_iters else 0, "wall_seconds": run.wall(), "completed": not stopped_early,
-               "final": {k: float(v) for k, v in last.items() if v is not None}}
+               "final": {k: float(v) for k, v in last.items() if v is not None}, **pretrained}
     if not stopped_early:
         run.save_final({"model": loss_module.state_dict(), "actor": actor.state_dict(), "kind": "ppo",
                         "lagrange": penalty.lam if penalty is not None else None, "frames": frames}, summary)

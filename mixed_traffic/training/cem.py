@@ -1,0 +1,202 @@
+"""Cross-entropy method (CEM): black-box search over the actor's parameters on whole-episode returns.
+
+A population of parameter vectors drawn around a mean is scored by running each one's
+deterministic action for whole episodes; the mean moves to the best of them::
+
+    mu, sigma <- the actor's parameters, policy.cem.sigma
+    for g in range(generations):
+        theta_k ~ N(mu, sigma^2), k = 1..P-1;  theta_0 = mu
+        F_k = mean over candidate k's episodes of  mean_t r_t - cost_coeff * mean_t c_t   (t >= score_after)
+        elite = the ceil(elite * P) best F_k
+        mu <- mean(elite);  sigma <- max(std(elite), sigma_min)
+    actor <- the mean that scored best (as candidate 0) over the generations
+
+All ``P x episodes`` episodes run as one batched rollout of the run's env (row ``i`` driven by
+candidate ``i // episodes``; the network is evaluated for every candidate at once with
+``torch.func.vmap``), so a generation costs about one rollout. On the torch rings every
+candidate drives the same ``episodes`` starts (ring length, positions, the humans'
+parameters: ``TrafficEnv.share_starts``; only the humans' per-step noise differs), so
+candidates are compared on common episodes; each generation draws new ones.
+
+Why this exists beside TorchRL's losses: TorchRL has no evolution-strategy or CEM trainer, and
+its objectives all assign credit step by step (likelihood ratios over a critic's advantage). A
+wave damper's set point acts over minutes: raising it pays now and brings the stop-and-go wave
+back a minute later, below what a discounted per-step advantage resolves from the humans'
+noise (``docs/wave.md``, "What did not work"). Scoring whole episodes needs no credit
+assignment. It runs on any env of the pipeline, torch or SUMO, and the policy it leaves is
+the actor itself (PPO may train it further: ``trainer.total_frames`` after it).
+
+>>> from mixed_traffic.config import compose
+>>> from mixed_traffic.training.builders import make_transformed_env
+>>> from mixed_traffic.training.on_policy import build_ppo
+>>> cfg = compose(["experiment=ring_wave_cem", "policy.cem.generations=1", "policy.cem.population=2",
+...                "policy.cem.episodes=1", "policy.cem.seconds=1.0", "policy.cem.score_after=0",
+...                "trainer.progress=false"])
+>>> actor = build_ppo(cfg, make_transformed_env(cfg, num_envs=2, seed=0))[0]
+>>> cem_pretrain(actor, cfg, log=None)["generations"]
+1
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from omegaconf import DictConfig
+from torch import nn
+from torch.func import functional_call, vmap
+from torch.nn.utils import parameters_to_vector, vector_to_parameters
+from tqdm.auto import tqdm
+
+
+class _PlainSequence(nn.Module):
+    """A ``TensorDictSequential`` of ``TensorDictModule``s run on plain tensors (what ``vmap`` needs)."""
+
+    def __init__(self, seq):
+        super().__init__()
+        self.seq = seq
+        self.in_keys = list(seq.in_keys)
+
+    def forward(self, *inputs):
+        values = dict(zip(self.in_keys, inputs))
+        for m in self.seq.module:
+            out = m.module(*[values[k] for k in m.in_keys])
+            values.update(zip(m.out_keys, out if isinstance(out, tuple) else (out,)))
+        return values["loc"], values["scale"]
+
+
+class PopulationPolicy(nn.Module):
+    """``td -> td`` with the deterministic action of candidate ``i // episodes`` on row ``i``.
+
+    Args:
+        actor: a ``ProbabilisticActor`` whose first module writes ``loc`` and ``scale`` (the
+            pipeline's actor); its parameters are left untouched.
+        thetas: ``[P, n]`` flat parameter vectors (the order of ``actor.module[0].parameters()``).
+        episodes: rows per candidate; the env has ``P * episodes`` rows.
+    """
+
+    def __init__(self, actor, thetas: torch.Tensor, episodes: int):
+        super().__init__()
+        self.actor, self.episodes = actor, int(episodes)
+        self.net = _PlainSequence(actor.module[0])
+        names = [n for n, _ in self.net.named_parameters()]
+        shapes = [p.shape for _, p in self.net.named_parameters()]
+        P, out, i = thetas.shape[0], {}, 0
+        for name, shape in zip(names, shapes):
+            k = math.prod(shape)
+            out[name] = thetas[:, i:i + k].reshape(P, *shape)
+            i += k
+        self.params, self.P = out, P
+
+    def forward(self, td):
+        ins = [td.get(k) for k in self.net.in_keys]
+        shaped = [x.reshape(self.P, self.episodes, *x.shape[1:]) for x in ins]
+        loc, scale = vmap(lambda p, *x: functional_call(self.net, p, x))(self.params, *shaped)
+        td.set("loc", loc.reshape(-1, *loc.shape[2:]))
+        td.set("scale", scale.reshape(-1, *scale.shape[2:]))
+        dist = self.actor.module[1].get_dist(td)
+        return td.set(self.actor.module[1].out_keys[0], dist.deterministic_sample)
+
+
+def score(td, cost_coeff: float, start: int = 0) -> torch.Tensor:
+    """Per row of a ``[rows, T]`` rollout: ``mean_t reward - cost_coeff * mean_t cost`` over its first episode.
+
+    Steps ``start ..`` count (the first ``start`` are a warm-up that is not scored, save for
+    a collision in it). The steps after a row's first ``done`` (the next episode, started by
+    the rollout) do not count; an episode that ends early in a collision scores its missing
+    steps as reward 0 and cost 1, and the collision itself as cost 1 per step.
+    """
+    from mixed_traffic.evaluation.harness import first_done_mask
+
+    nxt = td.get("next")
+    valid = first_done_mask(nxt.get("done").reshape(td.shape)).double()
+    collided = (nxt.get("collision").reshape(td.shape) & valid.bool()).any(1).double()
+    valid = valid[:, start:]
+    T = valid.shape[1]
+    r = (nxt.get("reward").reshape(td.shape)[:, start:].double() * valid).sum(1) / T
+    c = (nxt.get("cost").reshape(td.shape)[:, start:].double() * valid).sum(1) + (T - valid.sum(1))
+    return r - cost_coeff * (c / T + collided)
+
+
+def cem_update(thetas: torch.Tensor, F: torch.Tensor, n_elite: int, sigma_min: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The new ``(mu, sigma)``: mean and std (floored at ``sigma_min``) of the ``n_elite`` best rows of ``thetas``."""
+    elite = thetas[torch.topk(F, n_elite).indices].double()
+    sigma = elite.std(0, unbiased=False) if n_elite > 1 else torch.zeros_like(elite[0])
+    return elite.mean(0), sigma.clamp_min(float(sigma_min))
+
+
+def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
+    """Fit ``actor``'s deterministic action by CEM on the run's env (``cfg.policy.cem``).
+
+    Returns ``{"generations", "best_first", "best_last", "mean_last", "score_of_mean", "kept_generation",
+    "kept_score", "seconds"}`` (scores: the best and the population mean of :func:`score` per generation,
+    and each generation's mean's). The
+    actor ends at the generation mean that scored best (each mean is scored as candidate 0; a mean
+    of elite parameter vectors can be worse than its elites, so the last one is not taken blindly).
+    """
+    from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
+
+    c = cfg.policy.cem
+    for name in ("generations", "population", "episodes"):
+        v = c[name]
+        if not (isinstance(v, int) and v >= (2 if name == "population" else 1)):
+            raise ValueError(f"policy.cem.{name}={v!r} is invalid; allowed: an integer >= "
+                             f"{2 if name == 'population' else 1}")
+    if not (0 < c.elite <= 1 and c.sigma > 0 and 0 <= c.sigma_min <= c.sigma and c.cost_coeff >= 0):
+        raise ValueError(f"policy.cem: elite={c.elite}, sigma={c.sigma}, sigma_min={c.sigma_min}, "
+                         f"cost_coeff={c.cost_coeff} are invalid; allowed: 0 < elite <= 1, sigma > 0, "
+                         "0 <= sigma_min <= sigma, cost_coeff >= 0")
+    seconds = c.get("seconds")
+    if seconds is not None and not float(seconds) > 0:
+        raise ValueError(f"policy.cem.seconds={seconds!r} is invalid; allowed: null (the scenario's episode) or > 0 (s)")
+    if not hasattr(actor, "module") or len(actor.module) != 2 or not hasattr(actor.module[1], "get_dist"):
+        raise ValueError("policy.cem needs the pipeline's ProbabilisticActor (policy.kind=actor_critic)")
+    P, E = int(c.population), int(c.episodes)
+    n_elite = max(1, math.ceil(float(c.elite) * P))
+    env = make_transformed_env(cfg, num_envs=P * E, seed=int(cfg.seed) + 104_729, without=TRAINING_ONLY)
+    if hasattr(env.base_env, "share_starts"):  # every candidate drives the same E episodes (its rows p*E .. p*E+E-1)
+        env.base_env.share_starts(E)
+    dt = float(env.base_env.scenario.dt)
+    steps = env.base_env.scenario.max_steps if seconds is None else max(1, int(round(float(seconds) / dt)))
+    after = float(c.get("score_after") or 0.0)
+    if not 0 <= after < steps * dt:
+        raise ValueError(f"policy.cem.score_after={after!r} is invalid; allowed: 0 <= score_after < the episode "
+                         f"({steps * dt:g} s)")
+    start = int(round(after / dt))
+    params = list(actor.module[0].parameters())
+    mu = parameters_to_vector(params).detach().double()
+    sigma = torch.full_like(mu, float(c.sigma))
+    g = torch.Generator().manual_seed(int(cfg.seed) + 15_485_863)
+    t0, best_hist, mean_hist, best_mean, of_mean = time.perf_counter(), [], [], None, []
+    bar = tqdm(range(c.generations), desc="CEM", unit="generation",
+               disable=not bool(cfg.trainer.get("progress", True)))
+    try:
+        for gen in bar:
+            eps = torch.randn(P, mu.numel(), generator=g, dtype=torch.float64)
+            eps[0] = 0.0  # the current mean is always scored
+            thetas = (mu + sigma * eps).to(params[0].dtype)
+            policy = PopulationPolicy(actor, thetas, E)
+            with torch.no_grad():
+                td = env.rollout(steps, policy, break_when_any_done=False, auto_reset=True)
+            F = score(td, float(c.cost_coeff), start).reshape(P, E).mean(1)
+            of_mean.append(float(F[0]))
+            if best_mean is None or float(F[0]) > best_mean[0]:
+                best_mean = (float(F[0]), thetas[0].clone(), gen + 1)
+            mu, sigma = cem_update(thetas, F, n_elite, float(c.sigma_min))
+            best_hist.append(float(F.max()))
+            mean_hist.append(float(F.mean()))
+            bar.set_postfix(best=f"{best_hist[-1]:.4f}", mean_policy=f"{float(F[0]):.4f}", refresh=False)
+            if log:
+                log(f"cem: generation {gen + 1}/{c.generations}, score of the mean {float(F[0]):.4f}, "
+                    f"best {best_hist[-1]:.4f}, population mean {mean_hist[-1]:.4f}")
+    finally:
+        env.close()
+    with torch.no_grad():
+        vector_to_parameters(best_mean[1].to(params[0].dtype), params)
+    if log:
+        log(f"cem: the actor is the mean of generation {best_mean[2]} (its score {best_mean[0]:.4f}, the best of the means)")
+    return {"generations": int(c.generations), "best_first": best_hist[0], "best_last": best_hist[-1],
+            "mean_last": mean_hist[-1], "score_of_mean": of_mean, "kept_generation": best_mean[2],
+            "kept_score": best_mean[0],
+            "seconds": time.perf_counter() - t0}
