@@ -23,7 +23,8 @@ its objectives all assign credit step by step (likelihood ratios over a critic's
 wave damper's set point acts over minutes: raising it pays now and brings the stop-and-go wave
 back a minute later, below what a discounted per-step advantage resolves from the humans'
 noise (``docs/wave.md``, "What did not work"). Scoring whole episodes needs no credit
-assignment. It runs on any env of the pipeline, torch or SUMO, and the policy it leaves is
+assignment. It needs no gradient, so any batched env of the pipeline serves (the torch
+backends; the SUMO backend runs one row and refuses the batch), and the policy it leaves is
 the actor itself (PPO may train it further: ``trainer.total_frames`` after it).
 
 >>> from mixed_traffic.config import compose
