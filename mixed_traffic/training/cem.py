@@ -131,10 +131,10 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     """Fit ``actor``'s deterministic action by CEM on the run's env (``cfg.policy.cem``).
 
     Returns ``{"generations", "best_first", "best_last", "mean_last", "score_of_mean", "kept_generation",
-    "kept_score", "seconds"}`` (scores: the best and the population mean of :func:`score` per generation,
-    and each generation's mean's). The
-    actor ends at the generation mean that scored best (each mean is scored as candidate 0; a mean
-    of elite parameter vectors can be worse than its elites, so the last one is not taken blindly).
+    "kept_score", "seconds"}`` (scores: the best and the population mean of :func:`score` per
+    generation, and each generation's mean's). The actor ends at the generation mean that scored
+    best (each mean is scored as candidate 0; a mean of elite parameter vectors can be worse than
+    its elites, so the last one is not taken blindly).
     """
     from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
 
@@ -162,6 +162,7 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     steps = env.base_env.scenario.max_steps if seconds is None else max(1, int(round(float(seconds) / dt)))
     after = float(c.get("score_after") or 0.0)
     if not 0 <= after < steps * dt:
+        env.close()
         raise ValueError(f"policy.cem.score_after={after!r} is invalid; allowed: 0 <= score_after < the episode "
                          f"({steps * dt:g} s)")
     start = int(round(after / dt))
