@@ -270,6 +270,7 @@ class SumoRingEnv(EnvBase):
         self._netconvert = netconvert
         self._user_net = net_file is not None
         self.ring_length = float(sc.ring_length)
+        self._v_ref = None  # reward="wave_relative": the episode's uniform-flow speed ([1, 1]), set at reset
         self.init_pos = initial_positions(sc, torch.zeros(1, dtype=torch.long), torch.Generator().manual_seed(0))[0][0]
         self.init_pos = self.init_pos.double().numpy()
         self._hdv_base = sc.hdv_defaults()
@@ -473,8 +474,7 @@ class SumoRingEnv(EnvBase):
         ci = self._cav
         cav_acc = acc[:, ci]
         L = torch.tensor([[self.ring_length]], **f)
-        v_ref = uniform_flow_speed(sc, L).to(**f) if sc.reward == "wave_relative" else None
-        j, cost = stage_terms(sc, vel, g, cav_acc, v_eq, v_ref)
+        j, cost = stage_terms(sc, vel, g, cav_acc, v_eq, self._v_ref)
         cav = {"gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, [(i - 1) % sc.n_vehicles for i in ci]],
                "accel": cav_acc}
         speed_avg = None
@@ -513,6 +513,8 @@ class SumoRingEnv(EnvBase):
             self.ring_length = L
             self.net = build_ring_network(L, self.run_dir, netconvert=self._netconvert)
             self._offsets = self.net.edge_offsets()
+        if sc.reward == "wave_relative":  # once per episode: the bisection need not run every step
+            self._v_ref = uniform_flow_speed(sc, torch.tensor([[L]])).to(dtype=torch.float32, device=self.device)
         self.profile_params = self.profile.sample(1, self.rng)
         if sc.hdv_param_noise > 0:
             base = {f.name: float(getattr(self._hdv_base, f.name)) for f in dataclasses.fields(self._hdv_base)}

@@ -33,10 +33,10 @@ def check_config(cfg: DictConfig) -> None:
 
     check_chain(cfg.transforms.chain)
     check_collector_config(cfg)
-    apg_only = kind == "on_policy" and (int(cfg.policy.get("apg", {}).get("iterations", 0) or 0) > 0
+    pretrain_only = kind == "on_policy" and (int(cfg.policy.get("apg", {}).get("iterations", 0) or 0) > 0
                                         or int(cfg.policy.get("cem", {}).get("generations", 0) or 0) > 0)
     for k in ("total_frames", "num_envs", "rollout_len"):
-        if int(cfg.trainer[k]) < (0 if k == "total_frames" and apg_only else 1):
+        if int(cfg.trainer[k]) < (0 if k == "total_frames" and pretrain_only else 1):
             raise ConfigError(f"trainer.{k}", f"{cfg.trainer[k]!r} is out of range",
                               "an integer >= 1 (total_frames >= 0 with policy.apg.iterations > 0 or policy.cem.generations > 0)"
                               if k == "total_frames" else "an integer >= 1")
