@@ -187,6 +187,8 @@ class SetPointConfig:
     ``a`` in [-1, 1] per CAV (:class:`transforms.SetPointAction`); ``U_uniform`` is the ring's
     uniform-flow speed (the humans' IDM at spacing ``L / n``). With ``rate`` set, the action
     moves the ratio instead, ``ratio += rate a`` per step within ``[low, high]`` from ``ratio0``.
+    With ``ramp_to`` set, ``ratio0`` becomes the ramped FollowerStopper's schedule (``ratio0``
+    until ``ramp_start``, linear to ``ramp_to`` at ``ramp_end``) and the action corrects it.
     """
 
     ratio0: float = 0.9
@@ -194,6 +196,9 @@ class SetPointConfig:
     rate: float | None = None  # set: the action is the ratio's rate of change per step (ratio kept in [low, high])
     low: float = 0.8
     high: float = 1.05
+    ramp_to: float | None = None  # set: a = 0 follows the schedule ratio0 -> ramp_to over [ramp_start, ramp_end] s
+    ramp_start: float = 150.0
+    ramp_end: float = 300.0
 
 
 @dataclass
@@ -309,6 +314,7 @@ class CEMConfig:
     cost_coeff: float = 10.0  # score = mean reward - cost_coeff * (mean cost + collided)
     seconds: float | None = None  # episode length run (s); null: the scenario's
     score_after: float = 0.0  # the score counts from this time (s) on (a collision before it still counts)
+    init: str = "actor"  # the first mean: "actor" (its parameters) or "zero_action" (output layer zeroed: action 0)
 
 
 @dataclass

@@ -372,6 +372,34 @@ def test_set_point_action_is_follower_stopper_at_the_chosen_ratio():
         SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.9, rate=0.01, low=0.95)
 
 
+def test_set_point_action_with_a_ramp_is_the_ramped_follower_stopper_at_zero_action():
+    """ramp_to: a = 0 follows FollowerStopper's ramped schedule; the rate-mode action adds its correction."""
+    from torchrl.envs import TransformedEnv
+
+    from mixed_traffic.controllers.dampers import make_damper
+    from transforms import SetPointAction
+
+    ramp = dict(ramp_to=1.0, ramp_start=1.0, ramp_end=3.0)
+
+    def run(a, rate=0.001):
+        base = make_env("ring_wave", batch_size=2, seed=5, ring_length=230.0)
+        if a is None:
+            return base.rollout(40, make_damper("follower_stopper", base, u_ratio=0.87, **ramp))
+        sp = SetPointAction(make_damper("follower_stopper", base).module, ratio0=0.87, rate=rate, **ramp)
+        return TransformedEnv(base, sp).rollout(40, lambda td: td.set("action", torch.full((2, 1), a)))
+
+    fs, zero, up = run(None), run(0.0), run(1.0)
+    assert torch.allclose(zero["next", "traffic", "speed"], fs["next", "traffic", "speed"], atol=1e-4)
+    ratio = zero["next", "set_point", "ratio"][0, :, 0]
+    assert ratio[:11].tolist() == pytest.approx([0.87] * 11) and float(ratio[-1]) == pytest.approx(1.0)
+    assert float(ratio[20]) == pytest.approx(0.87 + 0.13 * 0.5)  # t = 2 s: half-way
+    # rate mode: the correction integrates on top of the schedule (40 steps of +0.001)
+    assert (up["next", "set_point", "ratio"][0, :, 0] - ratio)[-1] == pytest.approx(0.04, abs=1e-6)
+    with pytest.raises(ValueError, match="ramp_to"):
+        SetPointAction(make_damper("follower_stopper", make_env("ring_wave", batch_size=1, seed=0)).module,
+                       ratio0=0.9, rate=0.01, ramp_to=1.2, high=1.05)
+
+
 def test_wave_controllers_take_arguments_and_name_bad_ones():
     from mixed_traffic.evaluation.waves import controller_factories, parse_controller
 

@@ -35,9 +35,16 @@ class SetPointAction(Transform):
             point then needs no held action, and the policy's per-step exploration noise adds
             up to slow, persistent excursions of the set point (what shows its effect on a ring).
         low, high: the ratio's range in ``rate`` mode (default 0.8, 1.05).
+        ramp_to, ramp_start, ramp_end: if ``ramp_to`` is set, the action acts around a schedule
+            in episode time instead of the constant ``ratio0``: ``b(t) = ratio0`` until
+            ``ramp_start``, linear to ``ramp_to`` at ``ramp_end``, ``ramp_to`` after it (s), the
+            ramped FollowerStopper's schedule. ``ratio = b(t) + weight * a``, or in ``rate`` mode
+            ``ratio = clip(ratio + rate * a + b(t) - b(t - dt), low, high)``: at ``a = 0`` the
+            controller is the ramped FollowerStopper, and the policy learns a correction to it.
         action_key: the policy's action (replaced by the executed acceleration).
         gap_key, speed_key, leader_speed_key, ring_length_key: the state entries read.
         ratio_key: where the ratio used is logged (in ``"next"``).
+        time_key: the episode time (s), read with ``ramp_to``.
 
     Example:
         >>> from mixed_traffic import make_env
@@ -55,15 +62,21 @@ class SetPointAction(Transform):
                  rate: float | None = None, low: float = 0.8, high: float = 1.05, action_key: NestedKey = "action", gap_key: NestedKey = ("cav", "gap"),
                  speed_key: NestedKey = ("cav", "speed"), leader_speed_key: NestedKey = ("cav", "leader_speed"),
                  ring_length_key: NestedKey = ("traffic", "ring_length"),
-                 ratio_key: NestedKey = ("set_point", "ratio")):
+                 ratio_key: NestedKey = ("set_point", "ratio"), ramp_to: float | None = None,
+                 ramp_start: float = 150.0, ramp_end: float = 300.0, time_key: NestedKey = ("traffic", "time")):
         if not ratio0 > 0:
             raise ValueError(f"SetPointAction: ratio0={ratio0!r} is invalid; allowed: > 0")
-        if not 0 <= weight < ratio0:
-            raise ValueError(f"SetPointAction: weight={weight!r} is invalid; allowed: 0 <= weight < ratio0 "
-                             f"({ratio0}), so the set point stays > 0")
-        if rate is not None and not (rate > 0 and 0 < low <= ratio0 <= high):
-            raise ValueError(f"SetPointAction: rate={rate!r}, low={low!r}, ratio0={ratio0!r}, high={high!r} are invalid; "
-                             "allowed: rate > 0 and 0 < low <= ratio0 <= high")
+        if ramp_to is not None and not (ramp_to > 0 and 0 <= ramp_start < ramp_end):
+            raise ValueError(f"SetPointAction: ramp_to={ramp_to!r}, ramp_start={ramp_start!r}, ramp_end={ramp_end!r} "
+                             "are invalid; allowed: ramp_to > 0 and 0 <= ramp_start < ramp_end (s)")
+        lowest = ratio0 if ramp_to is None else min(ratio0, ramp_to)
+        if not 0 <= weight < lowest:
+            raise ValueError(f"SetPointAction: weight={weight!r} is invalid; allowed: 0 <= weight < min(ratio0, ramp_to) "
+                             f"({lowest}), so the set point stays > 0")
+        ends = (ratio0,) if ramp_to is None else (ratio0, ramp_to)
+        if rate is not None and not (rate > 0 and 0 < low and all(low <= r <= high for r in ends)):
+            raise ValueError(f"SetPointAction: rate={rate!r}, low={low!r}, ratio0={ratio0!r}, ramp_to={ramp_to!r}, "
+                             f"high={high!r} are invalid; allowed: rate > 0 and 0 < low <= ratio0, ramp_to <= high")
         for name in ("set_point", "command", "dt", "low", "high"):
             if not hasattr(controller, name):
                 raise ValueError(f"SetPointAction: controller {type(controller).__name__} has no {name!r}; allowed: "
@@ -75,17 +88,28 @@ class SetPointAction(Transform):
         self.action_key, self.ratio_key = action_key, ratio_key
         self.state_keys = (gap_key, speed_key, leader_speed_key)
         self.ring_length_key = ring_length_key
+        self.ramp = None if ramp_to is None else (float(ramp_to), float(ramp_start), float(ramp_end))
+        self.time_key = time_key
+
+    def base(self, time):
+        """The ratio at ``a = 0``: ``ratio0``, or the schedule ``b(time)`` with ``ramp_to``."""
+        if self.ramp is None:
+            return self.ratio0
+        to, t1, t2 = self.ramp
+        return self.ratio0 + (to - self.ratio0) * ((time - t1) / (t2 - t1)).clamp(0.0, 1.0)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
         gap, speed, leader = (tensordict.get(k) for k in self.state_keys)
         a = action.clamp(-1.0, 1.0).reshape(speed.shape).double()
-        if self.rate is None:
-            ratio = self.ratio0 + self.weight * a
-        else:  # the ratio in force (the observation's entry) moved by rate * a
-            ratio = (tensordict.get(self.ratio_key).reshape(speed.shape).double() + self.rate * a).clamp(self.low,
-                                                                                                          self.high)
         c = self.controller
+        t = tensordict.get(self.time_key).double() if self.ramp is not None else None
+        if self.rate is None:
+            ratio = self.base(t) + self.weight * a
+        else:  # the ratio in force (the observation's entry) moved by rate * a and by the schedule's step
+            drift = 0.0 if t is None else self.base(t) - self.base(t - float(c.dt))
+            ratio = (tensordict.get(self.ratio_key).reshape(speed.shape).double() + self.rate * a
+                     + drift).clamp(self.low, self.high)
         U = (c.set_point(tensordict.get(self.ring_length_key).double()).expand_as(speed) * ratio).to(speed.dtype)
         v_cmd = c.command(gap, speed, leader, U)
         executed = ((v_cmd - speed) / c.dt).clamp(c.low, c.high)
@@ -108,4 +132,6 @@ class SetPointAction(Transform):
 
     def __repr__(self) -> str:
         mode = f"rate={self.rate}, low={self.low}, high={self.high}" if self.rate else f"weight={self.weight}"
+        if self.ramp is not None:
+            mode += f", ramp_to={self.ramp[0]}, ramp_start={self.ramp[1]}, ramp_end={self.ramp[2]}"
         return f"{type(self).__name__}(ratio0={self.ratio0}, {mode}, controller={type(self.controller).__name__})"

@@ -80,7 +80,7 @@ def _set_point(tcfg, env):
 
     c = tcfg.set_point
     return SetPointAction(make_damper("follower_stopper", env).module, ratio0=c.ratio0, weight=c.weight, rate=c.rate,
-                          low=c.low, high=c.high)
+                          low=c.low, high=c.high, ramp_to=c.ramp_to, ramp_start=c.ramp_start, ramp_end=c.ramp_end)
 
 
 def _intervention_cost(tcfg, env):

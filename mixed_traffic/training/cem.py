@@ -3,13 +3,19 @@
 A population of parameter vectors drawn around a mean is scored by running each one's
 deterministic action for whole episodes; the mean moves to the best of them::
 
-    mu, sigma <- the actor's parameters, policy.cem.sigma
+    mu, sigma <- the actor's parameters (or its output layer zeroed: init=zero_action), policy.cem.sigma
+    kept <- mu
     for g in range(generations):
-        theta_k ~ N(mu, sigma^2), k = 1..P-1;  theta_0 = mu
+        theta_k ~ N(mu, sigma^2), k = 2..P-1;  theta_0 = mu;  theta_1 = kept
         F_k = mean over candidate k's episodes of  mean_t r_t - cost_coeff * mean_t c_t   (t >= score_after)
+        if F_0 > F_1: kept <- mu
         elite = the ceil(elite * P) best F_k
         mu <- mean(elite);  sigma <- max(std(elite), sigma_min)
-    actor <- the mean that scored best (as candidate 0) over the generations
+    actor <- kept
+
+The mean kept is the one that beat the previous keeper on the same episodes: a mean of elite
+parameter vectors can be worse than its elites, and scores of different generations come
+from different episodes, so neither the last mean nor the best-scoring one is taken blindly.
 
 All ``P x episodes`` episodes run as one batched rollout of the run's env (row ``i`` driven by
 candidate ``i // episodes``; the network is evaluated for every candidate at once with
@@ -132,9 +138,9 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
 
     Returns ``{"generations", "best_first", "best_last", "mean_last", "score_of_mean", "kept_generation",
     "kept_score", "seconds"}`` (scores: the best and the population mean of :func:`score` per
-    generation, and each generation's mean's). The actor ends at the generation mean that scored
-    best (each mean is scored as candidate 0; a mean of elite parameter vectors can be worse than
-    its elites, so the last one is not taken blindly).
+    generation, and each generation's mean's). The actor ends at the kept mean: each generation
+    scores its mean (candidate 0) and the keeper (candidate 1) on the same episodes, and the mean
+    replaces the keeper when it scores higher.
     """
     from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
 
@@ -153,6 +159,9 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
         raise ValueError(f"policy.cem.seconds={seconds!r} is invalid; allowed: null (the scenario's episode) or > 0 (s)")
     if not hasattr(actor, "module") or len(actor.module) != 2 or not hasattr(actor.module[1], "get_dist"):
         raise ValueError("policy.cem needs the pipeline's ProbabilisticActor (policy.kind=actor_critic)")
+    init = c.get("init", "actor")
+    if init not in ("actor", "zero_action"):
+        raise ValueError(f"policy.cem.init={init!r} is invalid; allowed: 'actor', 'zero_action'")
     P, E = int(c.population), int(c.episodes)
     n_elite = max(1, math.ceil(float(c.elite) * P))
     env = make_transformed_env(cfg, num_envs=P * E, seed=int(cfg.seed) + 104_729, without=TRAINING_ONLY)
@@ -167,10 +176,16 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
                          f"({steps * dt:g} s)")
     start = int(round(after / dt))
     params = list(actor.module[0].parameters())
+    if init == "zero_action":  # the output layer zeroed: the first mean acts 0 (e.g. a residual's base controller)
+        with torch.no_grad():
+            last = [m for m in actor.module[0].modules() if isinstance(m, nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.zero_()
     mu = parameters_to_vector(params).detach().double()
     sigma = torch.full_like(mu, float(c.sigma))
     g = torch.Generator().manual_seed(int(cfg.seed) + 15_485_863)
-    t0, best_hist, mean_hist, best_mean, of_mean = time.perf_counter(), [], [], None, []
+    t0, best_hist, mean_hist, of_mean = time.perf_counter(), [], [], []
+    kept = [mu.to(params[0].dtype).clone(), 0, None]  # parameters, generation whose mean they are, its score
     bar = tqdm(range(c.generations), desc="CEM", unit="generation",
                disable=not bool(cfg.trainer.get("progress", True)))
     try:
@@ -178,27 +193,30 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
             eps = torch.randn(P, mu.numel(), generator=g, dtype=torch.float64)
             eps[0] = 0.0  # the current mean is always scored
             thetas = (mu + sigma * eps).to(params[0].dtype)
+            thetas[1] = kept[0]  # and the keeper, on the same episodes
             policy = PopulationPolicy(actor, thetas, E)
             with torch.no_grad():
                 td = env.rollout(steps, policy, break_when_any_done=False, auto_reset=True)
             F = score(td, float(c.cost_coeff), start).reshape(P, E).mean(1)
             of_mean.append(float(F[0]))
-            if best_mean is None or float(F[0]) > best_mean[0]:
-                best_mean = (float(F[0]), thetas[0].clone(), gen + 1)
+            keeper = f"the keeper, generation {kept[1]}: {float(F[1]):.4f}" if gen else "the first mean"
+            if gen == 0 or float(F[0]) > float(F[1]):
+                kept = [thetas[0].clone(), gen + 1, float(F[0])]
             mu, sigma = cem_update(thetas, F, n_elite, float(c.sigma_min))
             best_hist.append(float(F.max()))
             mean_hist.append(float(F.mean()))
             bar.set_postfix(best=f"{best_hist[-1]:.4f}", mean_policy=f"{float(F[0]):.4f}", refresh=False)
             if log:
-                log(f"cem: generation {gen + 1}/{c.generations}, score of the mean {float(F[0]):.4f}, "
+                log(f"cem: generation {gen + 1}/{c.generations}, score of the mean {float(F[0]):.4f} ({keeper}), "
                     f"best {best_hist[-1]:.4f}, population mean {mean_hist[-1]:.4f}")
     finally:
         env.close()
     with torch.no_grad():
-        vector_to_parameters(best_mean[1].to(params[0].dtype), params)
+        vector_to_parameters(kept[0], params)
     if log:
-        log(f"cem: the actor is the mean of generation {best_mean[2]} (its score {best_mean[0]:.4f}, the best of the means)")
+        log(f"cem: the actor is the mean of generation {kept[1]} (its score {kept[2]:.4f}; no later mean beat it "
+            "on common episodes)")
     return {"generations": int(c.generations), "best_first": best_hist[0], "best_last": best_hist[-1],
-            "mean_last": mean_hist[-1], "score_of_mean": of_mean, "kept_generation": best_mean[2],
-            "kept_score": best_mean[0],
+            "mean_last": mean_hist[-1], "score_of_mean": of_mean, "kept_generation": kept[1],
+            "kept_score": kept[2],
             "seconds": time.perf_counter() - t0}
