@@ -202,6 +202,27 @@ class SetPointConfig:
 
 
 @dataclass
+class BlendConfig:
+    """``blend`` in the chain: the policy moves the weight ``m`` of ``(1 - m) first + m second``.
+
+    ``first`` and ``second`` are wave dampers named as in ``eval.wave.controllers``
+    (``name:key=number;...``, :func:`mixed_traffic.controllers.dampers.make_damper`).
+    ``m = b(t) + c``: the schedule ``b`` (``weight0`` until ``start``, linear to ``weight1`` at
+    ``end`` s) plus the policy's correction, ``c += rate a`` per step, ``m`` kept in [0, 1]
+    (:class:`transforms.ControllerBlend`): at ``a = 0`` the classical hand-over, e.g. the
+    ``fs_then_pi`` damper.
+    """
+
+    first: str = "follower_stopper:u_ratio=0.87;ramp_to=1.0"
+    second: str = "pi_saturation"
+    rate: float = 0.001  # correction per step at |a| = 1
+    weight0: float = 0.0
+    weight1: float = 1.0
+    start: float = 300.0
+    end: float = 330.0
+
+
+@dataclass
 class DiscretizerConfig:
     """State bins for tabular Q (per observation dim) and action bins for DQN / tabular Q."""
 
@@ -264,6 +285,7 @@ class TransformsConfig:
     profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)
     counterfactual_reward: CounterfactualRewardConfig = field(default_factory=CounterfactualRewardConfig)
     set_point: SetPointConfig = field(default_factory=SetPointConfig)
+    blend: BlendConfig = field(default_factory=BlendConfig)
     discretizer: DiscretizerConfig = field(default_factory=DiscretizerConfig)
     barrier_force: BarrierForceConfig = field(default_factory=BarrierForceConfig)
     residual_nmpc: ResidualNMPCConfig = field(default_factory=ResidualNMPCConfig)
@@ -311,7 +333,8 @@ class CEMConfig:
     elite: float = 0.25
     sigma: float = 0.1  # initial std of the parameter perturbations
     sigma_min: float = 0.01  # floor of the std (keeps the search from collapsing)
-    cost_coeff: float = 10.0  # score = mean reward - cost_coeff * (mean cost + collided)
+    cost_coeff: float = 10.0  # score = mean reward - cost_coeff * (max(mean cost - cost_limit, 0) + collided)
+    cost_limit: float = 0.0  # mean cost per step that is free (a budget: the layer's work below it is not penalised)
     seconds: float | None = None  # episode length run (s); null: the scenario's
     score_after: float = 0.0  # the score counts from this time (s) on (a collision before it still counts)
     init: str = "actor"  # the first mean: "actor" (its parameters) or "zero_action" (output layer zeroed: action 0)

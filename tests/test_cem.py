@@ -61,6 +61,19 @@ def test_score_counts_the_first_episode_and_prices_a_collision():
     assert float(s2[0]) == pytest.approx(1.0) and float(s2[1]) == pytest.approx(0.0 - 10.0 * (1.0 + 1.0))
 
 
+def test_score_spends_a_cost_budget_free():
+    """cost_limit: the mean cost per step below it is not penalised, the excess is; a collision always is."""
+    T = 4
+    cost = torch.tensor([[0.0, 0.1, 0.1, 0.0], [0.4, 0.4, 0.4, 0.4]]).unsqueeze(-1)  # means 0.05 and 0.4
+    nxt = TensorDict({"reward": torch.ones(2, T, 1), "cost": cost, "done": torch.zeros(2, T, 1, dtype=torch.bool),
+                      "collision": torch.zeros(2, T, 1, dtype=torch.bool)}, batch_size=[2, T])
+    td = TensorDict({"next": nxt}, batch_size=[2, T])
+    s = score(td, cost_coeff=10.0, cost_limit=0.1)
+    assert float(s[0]) == pytest.approx(1.0)  # within the budget
+    assert float(s[1]) == pytest.approx(1.0 - 10.0 * (0.4 - 0.1))
+    assert torch.allclose(score(td, cost_coeff=10.0), torch.tensor([1.0 - 0.5, 1.0 - 4.0], dtype=torch.float64))
+
+
 def test_cem_trains_the_actor_in_place_and_runs_from_mt_train(tmp_path):
     cfg = compose(TINY + ["policy.cem.generations=3", "policy.cem.population=4", "policy.cem.sigma=1.0",
                           "policy.cem.seconds=5.0", "policy.cem.init=actor"])
@@ -91,6 +104,7 @@ def test_cem_trains_the_actor_in_place_and_runs_from_mt_train(tmp_path):
     ("policy.cem.seconds=0.0", "policy.cem.seconds"),
     ("policy.cem.score_after=1.0", "policy.cem.score_after"),  # the episode (policy.cem.seconds) is 1 s
     ("policy.cem.init=zeros", "policy.cem.init"),
+    ("policy.cem.cost_limit=-0.1", "policy.cem.cost_limit"),
 ])
 def test_bad_cem_settings_name_the_field(override, field):
     cfg = compose(TINY + ["policy.cem.generations=1", override])

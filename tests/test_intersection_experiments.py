@@ -14,7 +14,7 @@ from torchrl.objectives import ClipPPOLoss, DQNLoss
 from losses import LagrangianPPOLoss
 from mixed_traffic.config import compose
 from mixed_traffic.training import check_config, train
-from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.training.builders import EpisodeRewardSum, make_transformed_env
 from mixed_traffic.validation import ConfigError
 
 EXPERIMENTS = sorted(p.stem for p in (Path(__file__).parent.parent / "hydra_configs" / "experiment").glob("*.yaml"))
@@ -25,6 +25,7 @@ def _transform_types() -> dict:
     from transforms import (
         BarrierForce,
         ConflictCost,
+        ControllerBlend,
         CounterfactualReward,
         InterventionCost,
         JerkPenalty,
@@ -41,7 +42,8 @@ def _transform_types() -> dict:
             "jerk_penalty": JerkPenalty,
             "state_discretizer": StateDiscretizer, "barrier_force": BarrierForce, "residual_nmpc": ResidualNMPC,
             "conflict_cost": ConflictCost, "profile_reward": ProfileNormalisedReward,
-            "counterfactual_reward": CounterfactualReward, "set_point": SetPointAction}
+            "counterfactual_reward": CounterfactualReward, "set_point": SetPointAction,
+            "blend": ControllerBlend}
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -62,7 +64,8 @@ def test_experiment_builds_the_transforms_loss_and_policy_it_names(name, tmp_pat
     env = make_transformed_env(cfg, num_envs=2, seed=0)
     built = [type(t) for t in env.transform][:-2]
     assert built == [_transform_types()[n] for n in cfg.transforms.chain]
-    assert [type(t) for t in env.transform][-2:] == [RewardSum, StepCounter]
+    assert [type(t) for t in env.transform][-2:] == [EpisodeRewardSum, StepCounter]
+    assert isinstance(env.transform[-2], RewardSum)  # TorchRL's, with an unbounded episode_reward spec
     if cfg.trainer.kind == "on_policy":
         from mixed_traffic.training.on_policy import AuxiliaryLosses, build_ppo
 

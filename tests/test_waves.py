@@ -242,7 +242,7 @@ def test_dampers_validate_and_run_on_the_ring():
         make_damper("stopper", env)
     with pytest.raises(ValueError, match="pi_saturation"):
         make_damper("pi_saturation", make_env("ring", batch_size=1))
-    for name in ("human", "idm", "follower_stopper", "pi_saturation"):
+    for name in ("human", "idm", "follower_stopper", "pi_saturation", "fs_then_pi"):
         td = env.rollout(200, make_damper(name, env))
         assert not td["next", "collision"].any(), name
 
@@ -398,6 +398,60 @@ def test_set_point_action_with_a_ramp_is_the_ramped_follower_stopper_at_zero_act
     with pytest.raises(ValueError, match="ramp_to"):
         SetPointAction(make_damper("follower_stopper", make_env("ring_wave", batch_size=1, seed=0)).module,
                        ratio0=0.9, rate=0.01, ramp_to=1.2, high=1.05)
+
+
+def test_fs_then_pi_is_follower_stopper_then_pi_blended_over_the_switch():
+    """``fs_then_pi``: FollowerStopper's ramp until ``switch``, PI-saturation after ``switch + switch_s``,
+    the two commands mixed linearly between."""
+    env = make_env("ring_wave", batch_size=2, seed=3, ring_length=230.0)
+    hand = make_damper("fs_then_pi", env, switch=2.0, switch_s=1.0)
+    fs = make_damper("follower_stopper", env, u_ratio=0.87, ramp_to=1.0)
+    pi = make_damper("pi_saturation", env)
+    td = env.rollout(40, hand)
+    for k, t in ((5, 0.5), (15, 1.5), (25, 2.5), (35, 3.5)):  # state k: time k * dt
+        state = td[:, k]
+        a1, a2 = fs(state.clone())["action"], pi(state.clone())["action"]
+        m = min(max((t - 2.0) / 1.0, 0.0), 1.0)
+        assert torch.allclose(state["action"], (1 - m) * a1 + m * a2, atol=1e-6), t
+    assert not torch.allclose(fs(td[:, 35].clone())["action"], pi(td[:, 35].clone())["action"])  # a real hand-over
+    with pytest.raises(ValueError, match="switch_s"):
+        make_damper("fs_then_pi", env, switch_s=0.0)
+
+
+def test_controller_blend_is_the_hand_over_at_zero_action_and_the_policy_moves_it():
+    """``ControllerBlend``: at a = 0 exactly the ``fs_then_pi`` damper; a = +1 hands over earlier; specs hold."""
+    from transforms import ControllerBlend
+
+    base = make_env("ring_wave", batch_size=2, seed=4, ring_length=230.0)
+    fs = make_damper("follower_stopper", base, u_ratio=0.87, ramp_to=1.0)
+    pi = make_damper("pi_saturation", base)
+    env = TransformedEnv(base, ControllerBlend(fs, pi, rate=0.01, start=2.0, end=3.0))
+    zero = env.rollout(50, lambda td: td.set("action", torch.zeros(2, 1)))
+    ref_env = make_env("ring_wave", batch_size=2, seed=4, ring_length=230.0)
+    ref = ref_env.rollout(50, make_damper("fs_then_pi", ref_env, switch=2.0, switch_s=1.0))
+    assert torch.equal(zero["next", "traffic", "speed"], ref["next", "traffic", "speed"])
+    w = zero["next", "blend", "weight"][0, :, 0]
+    assert float(w[19]) == 0.0 and float(w[25]) == pytest.approx(0.5) and float(w[-1]) == 1.0
+    up = env.rollout(50, lambda td: td.set("action", torch.ones(2, 1)))
+    wu = up["next", "blend", "weight"][0, :, 0]
+    assert float(wu[9]) == pytest.approx(0.1) and float(wu[-1]) == 1.0  # 0.01 per step before the switch, capped at 1
+    assert float(up["next", "blend", "correction"][0, -1, 0]) == 0.0  # no wind-up: the schedule took over
+    check_env_specs(env)
+    with pytest.raises(ValueError, match="rate"):
+        ControllerBlend(fs, pi, rate=0.0)
+    with pytest.raises(ValueError, match="start"):
+        ControllerBlend(fs, pi, rate=0.01, start=5.0, end=3.0)
+    with pytest.raises(ValueError, match="first"):
+        ControllerBlend(lambda td: td, pi, rate=0.01)
+
+
+def test_wave_experiments_pass_check_env_specs():
+    """The training chain's ``episode_reward`` is unbounded (TorchRL's ``RewardSum`` would copy the wave
+    reward's [-1, 1] bounds, which the episode's sum leaves after two steps)."""
+    from mixed_traffic.training.builders import make_transformed_env
+
+    for exp in ("ring_wave_cem", "ring_wave_blend"):
+        check_env_specs(make_transformed_env(compose([f"experiment={exp}"]), num_envs=2, seed=0))
 
 
 def test_wave_controllers_take_arguments_and_name_bad_ones():

@@ -4,6 +4,7 @@
 """
 
 from transforms.barrier_force import BarrierForce
+from transforms.blend import ControllerBlend
 from transforms.conflict_cost import ConflictCost
 from transforms.counterfactual_reward import CounterfactualReward
 from transforms.deeplcc_history import DeePLCCHistory
@@ -30,6 +31,7 @@ __all__ = [
     "StateDiscretizer",
     "ResidualAction",
     "SetPointAction",
+    "ControllerBlend",
     "DeePLCCHistory",
     "BarrierForce",
     "ConflictCost",

@@ -21,6 +21,11 @@ from torchrl.envs.transforms import Transform
 from transforms.specs import action_shaped_full, carry_to_next, with_action_shaped_entry, with_bounded_action
 
 
+def linear_schedule(time, start_value: float, end_value: float, t1: float, t2: float):
+    """``start_value`` until ``t1``, linear to ``end_value`` at ``t2``, ``end_value`` after it (``time`` a tensor, s)."""
+    return start_value + (end_value - start_value) * ((time - t1) / (t2 - t1)).clamp(0.0, 1.0)
+
+
 class SetPointAction(Transform):
     """Executes ``controller(state, U = U_ref * (ratio0 + weight * a))``; the policy outputs ``a`` in [-1, 1].
 
@@ -95,8 +100,7 @@ class SetPointAction(Transform):
         """The ratio at ``a = 0``: ``ratio0``, or the schedule ``b(time)`` with ``ramp_to``."""
         if self.ramp is None:
             return self.ratio0
-        to, t1, t2 = self.ramp
-        return self.ratio0 + (to - self.ratio0) * ((time - t1) / (t2 - t1)).clamp(0.0, 1.0)
+        return linear_schedule(time, self.ratio0, *self.ramp)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)

@@ -9,7 +9,11 @@ compares them on the ``ring_wave`` scenario:
   their per-step acceleration noise): the all-human ring;
 * ``idm``: the same IDM without noise (IDM-as-CAV);
 * ``follower_stopper``: FollowerStopper (Stern et al. 2018, Eq. 1-2);
-* ``pi_saturation``: PI with saturation (Stern et al. 2018, Eq. 3-6).
+* ``pi_saturation``: PI with saturation (Stern et al. 2018, Eq. 3-6);
+* ``fs_then_pi``: FollowerStopper (its ramped set point, typically) until ``switch`` s,
+  then PI with saturation, the acceleration blended linearly over ``switch_s`` s
+  (:class:`Handover`): FollowerStopper's low set point dissolves the start's wave, PI's
+  set point, its own average speed, then holds the dissolved ring at the speed it sustains.
 
 Reference: R. E. Stern et al., "Dissipation of stop-and-go waves via control of
 autonomous vehicles: Field experiments", Transportation Research Part C 89 (2018)
@@ -37,7 +41,7 @@ from mixed_traffic.controllers.classic import CarFollowingCAV, action_bounds
 from mixed_traffic.physics import car_following_accel, idm_equilibrium_speed
 
 Tensor = torch.Tensor
-DAMPERS = ("human", "idm", "follower_stopper", "pi_saturation")
+DAMPERS = ("human", "idm", "follower_stopper", "pi_saturation", "fs_then_pi")
 
 
 class FollowerStopper(nn.Module):
@@ -147,6 +151,28 @@ class PISaturation(nn.Module):
         return ((v_cmd - speed) / self.dt).clamp(self.low, self.high)
 
 
+class Handover(nn.Module):
+    """``(1 - m) * first + m * second`` with ``m = clip((time - switch) / switch_s, 0, 1)``.
+
+    ``first`` is a :class:`FollowerStopper`, ``second`` a :class:`PISaturation`; both return
+    accelerations within the same bounds, so the blend does too.
+    """
+
+    def __init__(self, first: FollowerStopper, second: PISaturation, *, switch: float = 300.0, switch_s: float = 30.0):
+        super().__init__()
+        if not (switch >= 0 and switch_s > 0):
+            raise ValueError(f"fs_then_pi: switch={switch!r}, switch_s={switch_s!r} are invalid; allowed: switch >= 0, "
+                             "switch_s > 0 (s)")
+        self.first, self.second = first, second
+        self.switch, self.switch_s = float(switch), float(switch_s)
+
+    def forward(self, gap: Tensor, speed: Tensor, leader_speed: Tensor, ring_length: Tensor, time: Tensor,
+                speed_avg: Tensor) -> Tensor:
+        m = ((time - self.switch) / self.switch_s).clamp(0.0, 1.0).expand_as(speed)
+        a_first = self.first(gap, speed, leader_speed, ring_length, time)
+        return (1.0 - m) * a_first + m * self.second(gap, speed, leader_speed, speed_avg)
+
+
 class HumanCAV(CarFollowingCAV):
     """The humans' car-following model driving the CAV, with optional per-step noise.
 
@@ -186,7 +212,9 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
         seed: generator seed of the ``human`` controller's noise.
         **kwargs: controller arguments (``U``, ``u_ratio``, ``ramp_to``, ``ramp_start``, ``ramp_end`` for
             ``follower_stopper``;
-            ``g_l``, ``g_u``, ``v_catch``, ``gamma`` for ``pi_saturation``).
+            ``g_l``, ``g_u``, ``v_catch``, ``gamma`` for ``pi_saturation``; for ``fs_then_pi``
+            ``switch`` and ``switch_s`` and FollowerStopper's, defaults ``u_ratio=0.87``,
+            ``ramp_to=1.0``, ``switch=300``, ``switch_s=30``).
     """
     if name not in DAMPERS:
         raise ValueError(f"damper {name!r} is invalid; allowed: {list(DAMPERS)}")
@@ -206,10 +234,20 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
         keys = [*base, ("traffic", "ring_length")] + ([("traffic", "time")] if module.ramp is not None else [])
         return TensorDictModule(module, in_keys=keys, out_keys=["action"])
     if sc.head:
-        raise ValueError("pi_saturation: needs ('cav', 'speed_avg'), which rings without a head provide "
+        raise ValueError(f"{name}: needs ('cav', 'speed_avg'), which rings without a head provide "
                          "(head=False, e.g. 'ring_wave')")
+    if name == "fs_then_pi":
+        if sc.hdv_model != "idm" and kwargs.get("U") is None:
+            raise ValueError("fs_then_pi: give U (m/s); the uniform-flow set point needs IDM humans")
+        switch = {k: kwargs.pop(k) for k in ("switch", "switch_s") if k in kwargs}
+        fs_kw = {"u_ratio": 0.87, "ramp_to": 1.0, **kwargs}
+        first = FollowerStopper(dt=sc.dt, low=low, high=high, n_vehicles=sc.n_vehicles,
+                                vehicle_length=sc.vehicle_length, hdv_params=params, **fs_kw)
+        module = Handover(first, PISaturation(dt=sc.dt, low=low, high=high), **switch)
+        return TensorDictModule(module, in_keys=[*base, ("traffic", "ring_length"), ("traffic", "time"),
+                                                 ("cav", "speed_avg")], out_keys=["action"])
     module = PISaturation(dt=sc.dt, low=low, high=high, **kwargs)
     return TensorDictModule(module, in_keys=[*base, ("cav", "speed_avg")], out_keys=["action"])
 
 
-__all__ = ["make_damper", "FollowerStopper", "PISaturation", "HumanCAV", "DAMPERS"]
+__all__ = ["make_damper", "FollowerStopper", "PISaturation", "Handover", "HumanCAV", "DAMPERS"]

@@ -105,7 +105,7 @@ def wave_metrics(td: TensorDictBase, *, dt: float, warmup: float, hard_brake: fl
 
 # ----------------------------------------------------------------------------- runs
 #: transforms that turn a policy's output into the CAV's command: a classical damper drives the CAV itself
-POLICY_ONLY = ("residual_damper", "residual_idm", "set_point", "intervention_cost")
+POLICY_ONLY = ("residual_damper", "residual_idm", "set_point", "blend", "intervention_cost")
 
 
 def _eval_cfg(cfg: DictConfig, *, safety_layer: bool, policy: bool = True) -> DictConfig:

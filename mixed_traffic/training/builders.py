@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import OneHot
+from torchrl.data import Composite, OneHot, Unbounded
 from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
 from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal
 
@@ -83,6 +83,18 @@ def _set_point(tcfg, env):
                           low=c.low, high=c.high, ramp_to=c.ramp_to, ramp_start=c.ramp_start, ramp_end=c.ramp_end)
 
 
+def _blend(tcfg, env):
+    from mixed_traffic.controllers.dampers import make_damper
+    from mixed_traffic.evaluation.waves import parse_controller
+    from transforms import ControllerBlend
+
+    c = tcfg.blend
+    parts = [parse_controller(name, f"transforms.blend.{field}") for field, name in (("first", c.first),
+                                                                                    ("second", c.second))]
+    return ControllerBlend(*(make_damper(n, env, **kw) for n, kw in parts), rate=c.rate, weight0=c.weight0,
+                           weight1=c.weight1, start=c.start, end=c.end)
+
+
 def _intervention_cost(tcfg, env):
     from transforms import InterventionCost
 
@@ -147,6 +159,22 @@ def _conflict_cost(tcfg, env):
                         ego_caused=c.ego_caused, margin=c.margin)
 
 
+class EpisodeRewardSum(RewardSum):
+    """TorchRL's ``RewardSum`` with an unbounded ``episode_reward`` spec.
+
+    ``RewardSum`` clones the per-step reward's spec for the episode sum, bounds included, so a
+    bounded reward (e.g. the wave reward in [-1, 1]) gives a sum outside its own spec after a
+    few steps and ``check_env_specs`` fails on the env.
+    """
+
+    def _generate_episode_reward_spec(self) -> Composite:
+        spec = super()._generate_episode_reward_spec()
+        for key in list(spec.keys(True, True)):
+            leaf = spec[key]
+            spec[key] = Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device)
+        return spec
+
+
 # name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
 TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
@@ -155,6 +183,7 @@ TRANSFORMS: dict[str, Callable] = {
     "safety_layer": _safety_layer,
     "residual_damper": _residual_damper,
     "set_point": _set_point,
+    "blend": _blend,
     "intervention_cost": _intervention_cost,
     "residual_idm": _residual_idm,
     "residual_nnmpc": _residual_nnmpc,
@@ -189,7 +218,7 @@ def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, without: 
     base: EnvBase = make_env(cfg.env.scenario, backend=cfg.env.backend, batch_size=num_envs, seed=seed,
                              device=cfg.device, **env_kwargs(cfg.env, **env_overrides))
     ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain if name not in without]
-    ts += [RewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
+    ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return TransformedEnv(base, Compose(*ts))
 
 

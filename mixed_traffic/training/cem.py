@@ -7,7 +7,8 @@ deterministic action for whole episodes; the mean moves to the best of them::
     kept <- mu
     for g in range(generations):
         theta_k ~ N(mu, sigma^2), k = 2..P-1;  theta_0 = mu;  theta_1 = kept
-        F_k = mean over candidate k's episodes of  mean_t r_t - cost_coeff * mean_t c_t   (t >= score_after)
+        F_k = mean over candidate k's episodes of  mean_t r_t - cost_coeff * max(mean_t c_t - cost_limit, 0)
+              (t >= score_after; a collision costs cost_coeff more)
         if F_0 > F_1: kept <- mu
         elite = the ceil(elite * P) best F_k
         mu <- mean(elite);  sigma <- max(std(elite), sigma_min)
@@ -56,21 +57,7 @@ from torch.func import functional_call, vmap
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from tqdm.auto import tqdm
 
-
-class _PlainSequence(nn.Module):
-    """A ``TensorDictSequential`` of ``TensorDictModule``s run on plain tensors (what ``vmap`` needs)."""
-
-    def __init__(self, seq):
-        super().__init__()
-        self.seq = seq
-        self.in_keys = list(seq.in_keys)
-
-    def forward(self, *inputs):
-        values = dict(zip(self.in_keys, inputs))
-        for m in self.seq.module:
-            out = m.module(*[values[k] for k in m.in_keys])
-            values.update(zip(m.out_keys, out if isinstance(out, tuple) else (out,)))
-        return values["loc"], values["scale"]
+from mixed_traffic.training.plain_actor import PlainSequence
 
 
 class PopulationPolicy(nn.Module):
@@ -86,7 +73,7 @@ class PopulationPolicy(nn.Module):
     def __init__(self, actor, thetas: torch.Tensor, episodes: int):
         super().__init__()
         self.actor, self.episodes = actor, int(episodes)
-        self.net = _PlainSequence(actor.module[0])
+        self.net = PlainSequence(actor.module[0])
         names = [n for n, _ in self.net.named_parameters()]
         shapes = [p.shape for _, p in self.net.named_parameters()]
         P, out, i = thetas.shape[0], {}, 0
@@ -106,8 +93,11 @@ class PopulationPolicy(nn.Module):
         return td.set(self.actor.module[1].out_keys[0], dist.deterministic_sample)
 
 
-def score(td, cost_coeff: float, start: int = 0) -> torch.Tensor:
-    """Per row of a ``[rows, T]`` rollout: ``mean_t reward - cost_coeff * mean_t cost`` over its first episode.
+def score(td, cost_coeff: float, start: int = 0, cost_limit: float = 0.0) -> torch.Tensor:
+    """Per row of a ``[rows, T]`` rollout: ``mean_t reward - cost_coeff * max(mean_t cost - cost_limit, 0)`` over its first episode.
+
+    ``cost_limit`` is a budget of mean cost per step that is free (as a Lagrangian's cost
+    limit): the safety layer's work below it is not traded against reward.
 
     Steps ``start ..`` count (the first ``start`` are a warm-up that is not scored, save for
     a collision in it). The steps after a row's first ``done`` (the next episode, started by
@@ -123,7 +113,7 @@ def score(td, cost_coeff: float, start: int = 0) -> torch.Tensor:
     T = valid.shape[1]
     r = (nxt.get("reward").reshape(td.shape)[:, start:].double() * valid).sum(1) / T
     c = (nxt.get("cost").reshape(td.shape)[:, start:].double() * valid).sum(1) + (T - valid.sum(1))
-    return r - cost_coeff * (c / T + collided)
+    return r - cost_coeff * ((c / T - cost_limit).clamp_min(0.0) + collided)
 
 
 def cem_update(thetas: torch.Tensor, F: torch.Tensor, n_elite: int, sigma_min: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -159,6 +149,9 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
         raise ValueError(f"policy.cem.seconds={seconds!r} is invalid; allowed: null (the scenario's episode) or > 0 (s)")
     if not hasattr(actor, "module") or len(actor.module) != 2 or not hasattr(actor.module[1], "get_dist"):
         raise ValueError("policy.cem needs the pipeline's ProbabilisticActor (policy.kind=actor_critic)")
+    limit = float(c.get("cost_limit") or 0.0)
+    if not limit >= 0:
+        raise ValueError(f"policy.cem.cost_limit={limit!r} is invalid; allowed: >= 0 (mean cost per step)")
     init = c.get("init", "actor")
     if init not in ("actor", "zero_action"):
         raise ValueError(f"policy.cem.init={init!r} is invalid; allowed: 'actor', 'zero_action'")
@@ -197,7 +190,7 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
             policy = PopulationPolicy(actor, thetas, E)
             with torch.no_grad():
                 td = env.rollout(steps, policy, break_when_any_done=False, auto_reset=True)
-            F = score(td, float(c.cost_coeff), start).reshape(P, E).mean(1)
+            F = score(td, float(c.cost_coeff), start, limit).reshape(P, E).mean(1)
             of_mean.append(float(F[0]))
             keeper = f"the keeper, generation {kept[1]}: {float(F[1]):.4f}" if gen else "the first mean"
             if gen == 0 or float(F[0]) > float(F[1]):
