@@ -226,23 +226,23 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
         noise = sc.accel_noise if name == "human" else 0.0
         module = HumanCAV(sc.hdv_model, sc.hdv_defaults(), low=low, high=high, noise=noise, seed=seed)
         return TensorDictModule(module, in_keys=base, out_keys=["action"])
+
+    def follower_stopper(**fs_kwargs) -> FollowerStopper:
+        if sc.hdv_model != "idm" and fs_kwargs.get("U") is None:
+            raise ValueError(f"{name}: give U (m/s); the uniform-flow set point needs IDM humans")
+        return FollowerStopper(dt=sc.dt, low=low, high=high, n_vehicles=sc.n_vehicles,
+                               vehicle_length=sc.vehicle_length, hdv_params=params, **fs_kwargs)
+
     if name == "follower_stopper":
-        if sc.hdv_model != "idm" and kwargs.get("U") is None:
-            raise ValueError("follower_stopper: give U (m/s); the uniform-flow set point needs IDM humans")
-        module = FollowerStopper(dt=sc.dt, low=low, high=high, n_vehicles=sc.n_vehicles,
-                                 vehicle_length=sc.vehicle_length, hdv_params=params, **kwargs)
+        module = follower_stopper(**kwargs)
         keys = [*base, ("traffic", "ring_length")] + ([("traffic", "time")] if module.ramp is not None else [])
         return TensorDictModule(module, in_keys=keys, out_keys=["action"])
     if sc.head:
         raise ValueError(f"{name}: needs ('cav', 'speed_avg'), which rings without a head provide "
                          "(head=False, e.g. 'ring_wave')")
     if name == "fs_then_pi":
-        if sc.hdv_model != "idm" and kwargs.get("U") is None:
-            raise ValueError("fs_then_pi: give U (m/s); the uniform-flow set point needs IDM humans")
         switch = {k: kwargs.pop(k) for k in ("switch", "switch_s") if k in kwargs}
-        fs_kw = {"u_ratio": 0.87, "ramp_to": 1.0, **kwargs}
-        first = FollowerStopper(dt=sc.dt, low=low, high=high, n_vehicles=sc.n_vehicles,
-                                vehicle_length=sc.vehicle_length, hdv_params=params, **fs_kw)
+        first = follower_stopper(**{"u_ratio": 0.87, "ramp_to": 1.0, **kwargs})
         module = Handover(first, PISaturation(dt=sc.dt, low=low, high=high), **switch)
         return TensorDictModule(module, in_keys=[*base, ("traffic", "ring_length"), ("traffic", "time"),
                                                  ("cav", "speed_avg")], out_keys=["action"])
