@@ -474,7 +474,9 @@ class _TrainerCommon:
     checkpoint_every: int = 20  # iterations (batches) between checkpoints; 0 disables
     log_every: int = 1
     progress: bool = True  # tqdm bar
-    max_minutes: float | None = None  # stop after this wall-clock budget (checkpoint first)
+    # stop after this wall-clock budget (checkpoint first); a policy.cem search before the run
+    # stops before a generation that would end past it, on its own clock
+    max_minutes: float | None = None
     max_iterations: int | None = None  # stop after this many iterations in this process (checkpoint first)
     # start the rows at random points of their episode clock, so a batch mixes all phases
     # of the head profile instead of every row meeting the same speed change at once
@@ -551,6 +553,9 @@ class WaveEvalConfig:
     hard_brake: float = -2.0  # m/s^2: a hard-braking event starts when a vehicle's acceleration drops below this
     safety_layer: bool = True  # run the learned policy behind transforms.safety_layer
     without_layer: bool = True  # ... and without it (raw actions executed)
+    # every controller but the all-human ring again behind transforms.safety_layer (rows "<name> (layer)"):
+    # what the layer would change of it, and its speed when it must respect the same bound as the policy
+    classical_with_layer: bool = False
 
 
 @dataclass

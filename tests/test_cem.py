@@ -96,6 +96,18 @@ def test_cem_trains_the_actor_in_place_and_runs_from_mt_train(tmp_path):
     assert saved["cem"]["generations"] == 1 and saved["cem"]["seconds"] > 0  # the CEM's own record
 
 
+def test_cem_stops_within_trainer_max_minutes():
+    """trainer.max_minutes bounds the search: it stops before a generation that would end past it."""
+    cfg = compose(TINY + ["policy.cem.generations=4", "policy.cem.seconds=3.0", "trainer.max_minutes=0.00001"])
+    actor, _ = _actor(cfg)
+    logged = []
+    out = cem_pretrain(actor, cfg, log=logged.append)
+    assert out["generations"] == 1 and len(out["score_of_mean"]) == 1  # the first always runs, then the budget is spent
+    assert "trainer.max_minutes" in out["stopped"] and "stopping before generation 2/4" in logged[-2]
+    out = cem_pretrain(actor, compose(TINY + ["policy.cem.generations=2", "policy.cem.seconds=3.0"]), log=None)
+    assert out["generations"] == 2 and out["stopped"] is None  # no budget: every generation
+
+
 @pytest.mark.parametrize("override, field", [
     ("policy.cem.population=1", "policy.cem.population"),
     ("policy.cem.episodes=0", "policy.cem.episodes"),

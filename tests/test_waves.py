@@ -443,6 +443,15 @@ def test_controller_blend_is_the_hand_over_at_zero_action_and_the_policy_moves_i
         ControllerBlend(fs, pi, rate=0.01, start=5.0, end=3.0)
     with pytest.raises(ValueError, match="first"):
         ControllerBlend(lambda td: td, pi, rate=0.01)
+    from mixed_traffic.training.builders import make_transformed_env
+
+    for bad, field in (("no_such_damper", "first"), ("follower_stopper:speed=3", "first")):
+        cfg = compose(["experiment=ring_wave_blend", f"transforms.blend.{field}='{bad}'"])
+        with pytest.raises(ValueError, match=f"transforms.blend.{field}="):
+            make_transformed_env(cfg, num_envs=1, seed=0)
+    with pytest.raises(ValueError, match="transforms.blend.second="):
+        make_transformed_env(compose(["experiment=ring_wave_blend", "transforms.blend.second='pi_saturation:g_x=1'"]),
+                             num_envs=1, seed=0)
 
 
 def test_wave_experiments_pass_check_env_specs():
@@ -452,6 +461,21 @@ def test_wave_experiments_pass_check_env_specs():
 
     for exp in ("ring_wave_cem", "ring_wave_blend"):
         check_env_specs(make_transformed_env(compose([f"experiment={exp}"]), num_envs=2, seed=0))
+
+
+def test_classical_with_layer_adds_each_damper_behind_the_safety_layer():
+    """eval.wave.classical_with_layer: every damper (not the all-human ring) again, behind the
+    run's safety layer; a set point far above the ring's speed is clipped there, not without it."""
+    from mixed_traffic.evaluation.waves import evaluate_waves
+
+    cfg = compose(["experiment=ring_wave_blend", "eval.wave.episodes=2", "eval.wave.episode_seconds=30",
+                   "eval.wave.warmup_seconds=1", "eval.wave.ring_lengths=[240]", "eval.wave.classical_with_layer=true"])
+    rep, _ = evaluate_waves(cfg, controllers=["human", "follower_stopper:U=15"])
+    ctrl = rep["rings"]["240"]["controllers"]
+    assert set(ctrl) == {"human", "follower_stopper:U=15", "follower_stopper:U=15 (layer)"}
+    layer, bare = ctrl["follower_stopper:U=15 (layer)"], ctrl["follower_stopper:U=15"]
+    assert layer["metrics"]["intervention"]["min"] > 0 and bare["metrics"]["intervention"]["max"] == 0
+    assert layer["collisions"] == 0 and layer["metrics"]["cav_min_gap"]["min"] >= 2.0 - 1e-4  # the layer's s_min
 
 
 def test_wave_controllers_take_arguments_and_name_bad_ones():

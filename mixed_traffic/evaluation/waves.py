@@ -186,7 +186,10 @@ def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: i
         if damper not in DAMPERS:
             raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: {list(DAMPERS)} (+ 'policy'), "
                              "optionally with arguments, e.g. 'follower_stopper:u_ratio=0.93'")
-        out[name] = ((lambda n, kw: (lambda env: make_damper(n, env, seed=seed, **kw)))(damper, kwargs), False)
+        factory = (lambda n, kw: (lambda env: make_damper(n, env, seed=seed, **kw)))(damper, kwargs)
+        out[name] = (factory, False)
+        if cfg.eval.wave.get("classical_with_layer", False) and damper != "human":
+            out[f"{name} (layer)"] = (factory, True)
     if policy_factory is not None:
         if cfg.eval.wave.safety_layer:
             out["policy"] = (policy_factory, True)

@@ -89,10 +89,14 @@ def _blend(tcfg, env):
     from transforms import ControllerBlend
 
     c = tcfg.blend
-    parts = [parse_controller(name, f"transforms.blend.{field}") for field, name in (("first", c.first),
-                                                                                    ("second", c.second))]
-    return ControllerBlend(*(make_damper(n, env, **kw) for n, kw in parts), rate=c.rate, weight0=c.weight0,
-                           weight1=c.weight1, start=c.start, end=c.end)
+    dampers = []
+    for field, name in (("first", c.first), ("second", c.second)):
+        damper, kwargs = parse_controller(name, f"transforms.blend.{field}")
+        try:
+            dampers.append(make_damper(damper, env, **kwargs))
+        except (TypeError, ValueError) as e:  # an unknown damper or argument: name the config field
+            raise ValueError(f"transforms.blend.{field}={name!r} is invalid: {e}") from e
+    return ControllerBlend(*dampers, rate=c.rate, weight0=c.weight0, weight1=c.weight1, start=c.start, end=c.end)
 
 
 def _intervention_cost(tcfg, env):

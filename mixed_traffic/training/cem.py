@@ -126,11 +126,16 @@ def cem_update(thetas: torch.Tensor, F: torch.Tensor, n_elite: int, sigma_min: f
 def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     """Fit ``actor``'s deterministic action by CEM on the run's env (``cfg.policy.cem``).
 
-    Returns ``{"generations", "best_first", "best_last", "mean_last", "score_of_mean", "kept_generation",
-    "kept_score", "seconds"}`` (scores: the best and the population mean of :func:`score` per
+    Returns ``{"generations", "stopped", "best_first", "best_last", "mean_last", "score_of_mean",
+    "kept_generation", "kept_score", "seconds"}`` (``generations``: how many ran; ``stopped``: why
+    fewer than ``policy.cem.generations``, else None; scores: the best and the population mean of :func:`score` per
     generation, and each generation's mean's). The actor ends at the kept mean: each generation
     scores its mean (candidate 0) and the keeper (candidate 1) on the same episodes, and the mean
     replaces the keeper when it scores higher.
+
+    ``trainer.max_minutes`` bounds the search on its own clock: it stops before a generation
+    that would end past the budget (at the slowest generation's pace so far); the first
+    generation always runs.
     """
     from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
 
@@ -177,12 +182,23 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     mu = parameters_to_vector(params).detach().double()
     sigma = torch.full_like(mu, float(c.sigma))
     g = torch.Generator().manual_seed(int(cfg.seed) + 15_485_863)
+    budget = cfg.trainer.get("max_minutes")
+    budget_s = None if budget is None else 60.0 * float(budget)
     t0, best_hist, mean_hist, of_mean = time.perf_counter(), [], [], []
     kept = [mu.to(params[0].dtype).clone(), 0, None]  # parameters, generation whose mean they are, its score
+    stopped, gen_s = None, 0.0
     bar = tqdm(range(c.generations), desc="CEM", unit="generation",
                disable=not bool(cfg.trainer.get("progress", True)))
     try:
         for gen in bar:
+            elapsed = time.perf_counter() - t0
+            if gen and budget_s is not None and elapsed + gen_s > budget_s:  # the next one would end past the budget
+                stopped = (f"trainer.max_minutes={budget}: {gen} generations took {elapsed:.0f} s; another takes "
+                           f"about {gen_s:.0f} s")
+                if log:
+                    log(f"cem: stopping before generation {gen + 1}/{c.generations} ({stopped})")
+                break
+            g0 = time.perf_counter()
             eps = torch.randn(P, mu.numel(), generator=g, dtype=torch.float64)
             eps[0] = 0.0  # the current mean is always scored
             thetas = (mu + sigma * eps).to(params[0].dtype)
@@ -202,6 +218,7 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
             if log:
                 log(f"cem: generation {gen + 1}/{c.generations}, score of the mean {float(F[0]):.4f} ({keeper}), "
                     f"best {best_hist[-1]:.4f}, population mean {mean_hist[-1]:.4f}")
+            gen_s = max(gen_s, time.perf_counter() - g0)
     finally:
         env.close()
     with torch.no_grad():
@@ -209,7 +226,7 @@ def cem_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     if log:
         log(f"cem: the actor is the mean of generation {kept[1]} (its score {kept[2]:.4f}; no later mean beat it "
             "on common episodes)")
-    return {"generations": int(c.generations), "best_first": best_hist[0], "best_last": best_hist[-1],
+    return {"generations": len(best_hist), "stopped": stopped, "best_first": best_hist[0], "best_last": best_hist[-1],
             "mean_last": mean_hist[-1], "score_of_mean": of_mean, "kept_generation": kept[1],
             "kept_score": kept[2],
             "seconds": time.perf_counter() - t0}
