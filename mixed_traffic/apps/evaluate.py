@@ -47,10 +47,11 @@ def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
         print(rep["paths"]["md"].read_text())
         return rep
     if "rings" in rep:  # the stop-and-go wave report (rings without a head)
+        width = max(len(label) for e in rep["rings"].values() for label in e["controllers"])
         for L, e in rep["rings"].items():
             for label, r in e["controllers"].items():
                 m = r["metrics"]
-                print(f"ring {L} m  {label:<18} mean speed {m['mean_speed']['mean']:.2f} m/s, speed std "
+                print(f"ring {L} m  {label:<{width}} mean speed {m['mean_speed']['mean']:.2f} m/s, speed std "
                       f"{m['speed_std']['mean']:.2f} m/s, collisions {r['collisions']}")
         return
     acc = rep["acceptance"]
