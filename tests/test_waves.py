@@ -445,10 +445,11 @@ def test_controller_blend_is_the_hand_over_at_zero_action_and_the_policy_moves_i
         ControllerBlend(lambda td: td, pi, rate=0.01)
     from mixed_traffic.training.builders import make_transformed_env
 
-    for field, bad in (("first", "no_such_damper"), ("first", "follower_stopper:speed=3"),
-                       ("second", "pi_saturation:g_x=1")):
+    for field, bad, allowed in (("first", "no_such_damper", "follower_stopper"),
+                                ("first", "follower_stopper:speed=3", "'U', 'u_ratio'"),
+                                ("second", "pi_saturation:g_x=1", "'g_l', 'g_u', 'v_catch', 'gamma'")):
         cfg = compose(["experiment=ring_wave_blend", f"transforms.blend.{field}='{bad}'"])
-        with pytest.raises(ValueError, match=f"transforms.blend.{field}="):
+        with pytest.raises(ValueError, match=f"transforms.blend.{field}=.*allowed: .*{allowed}"):
             make_transformed_env(cfg, num_envs=1, seed=0)
 
 
@@ -488,3 +489,22 @@ def test_wave_controllers_take_arguments_and_name_bad_ones():
     for bad in ("follower_stopper:u_ratio", "follower_stopper:u_ratio=fast", "no_such_damper:u_ratio=1"):
         with pytest.raises(ValueError, match="eval.wave.controllers"):
             controller_factories(cfg, [bad])
+    # an unknown argument fails when the list is read, before any controller runs, naming the allowed ones
+    with pytest.raises(ValueError, match=r"eval.wave.controllers: 'pi_saturation:gl=3'.*\['gl'\].*'g_l'"):
+        controller_factories(cfg, ["follower_stopper", "pi_saturation:gl=3"])
+
+
+def test_damper_arguments_are_checked_by_name():
+    """``make_damper`` accepts its damper's own arguments and refuses any other by name, listing the allowed
+    ones (the human and IDM baselines take none: an argument there is not silently ignored)."""
+    from mixed_traffic.controllers.dampers import damper_arguments
+
+    env = make_env("ring_wave", batch_size=1, seed=0)
+    assert damper_arguments("pi_saturation") == ["g_l", "g_u", "v_catch", "gamma"]
+    assert {"switch", "switch_s", "u_ratio", "ramp_to"} <= set(damper_arguments("fs_then_pi"))
+    assert make_damper("fs_then_pi", env, switch=100.0, u_ratio=0.9).module.first.u_ratio == 0.9
+    for name, kwargs, allowed in (("human", {"noise": 0.0}, "none"), ("idm", {"T": 1.5}, "none"),
+                                  ("fs_then_pi", {"g_l": 3.0}, "'switch', 'switch_s', 'U'"),
+                                  ("follower_stopper", {"dt": 0.2}, "'U', 'u_ratio'")):
+        with pytest.raises(ValueError, match=f"{name}: arguments .* are invalid; allowed: .*{allowed}"):
+            make_damper(name, env, **kwargs)

@@ -32,6 +32,7 @@ False
 from __future__ import annotations
 
 import dataclasses
+import inspect
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -202,6 +203,24 @@ def _scenario(env):
     return sc
 
 
+def damper_arguments(name: str) -> list[str]:
+    """The keyword arguments :func:`make_damper` accepts for damper ``name`` (its constructor's,
+    less what the env supplies: bounds, ``dt``, the ring's size and the humans' parameters)."""
+    from_env = {"dt", "low", "high", "n_vehicles", "vehicle_length", "hdv_params"}
+
+    def own(cls) -> list[str]:
+        return [n for n, p in inspect.signature(cls).parameters.items()
+                if p.kind is inspect.Parameter.KEYWORD_ONLY and n not in from_env]
+
+    if name == "follower_stopper":
+        return own(FollowerStopper)
+    if name == "pi_saturation":
+        return own(PISaturation)
+    if name == "fs_then_pi":
+        return own(Handover) + own(FollowerStopper)
+    return []
+
+
 def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     """A wave damper (or the human/IDM baselines) driving every CAV of ``env``.
 
@@ -214,10 +233,15 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
             ``follower_stopper``;
             ``g_l``, ``g_u``, ``v_catch``, ``gamma`` for ``pi_saturation``; for ``fs_then_pi``
             ``switch`` and ``switch_s`` and FollowerStopper's, defaults ``u_ratio=0.87``,
-            ``ramp_to=1.0``, ``switch=300``, ``switch_s=30``).
+            ``ramp_to=1.0``, ``switch=300``, ``switch_s=30``; none for ``human`` and ``idm``).
+            Any other name raises ``ValueError`` listing the allowed ones (:func:`damper_arguments`).
     """
     if name not in DAMPERS:
         raise ValueError(f"damper {name!r} is invalid; allowed: {list(DAMPERS)}")
+    allowed = damper_arguments(name)
+    unknown = sorted(set(kwargs) - set(allowed))
+    if unknown:
+        raise ValueError(f"{name}: arguments {unknown} are invalid; allowed: {allowed or 'none'}")
     sc = _scenario(env)
     low, high = action_bounds(env)
     params = dataclasses.asdict(sc.hdv_defaults())
@@ -250,4 +274,4 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     return TensorDictModule(module, in_keys=[*base, ("cav", "speed_avg")], out_keys=["action"])
 
 
-__all__ = ["make_damper", "FollowerStopper", "PISaturation", "Handover", "HumanCAV", "DAMPERS"]
+__all__ = ["make_damper", "damper_arguments", "FollowerStopper", "PISaturation", "Handover", "HumanCAV", "DAMPERS"]
