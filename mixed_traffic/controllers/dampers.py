@@ -221,6 +221,15 @@ def damper_arguments(name: str) -> list[str]:
     return []
 
 
+def check_damper_arguments(name: str, kwargs) -> None:
+    """Raise ``ValueError`` naming the arguments in ``kwargs`` that damper ``name`` does not take and
+    listing the ones it does (:func:`damper_arguments`)."""
+    allowed = damper_arguments(name)
+    unknown = sorted(set(kwargs) - set(allowed))
+    if unknown:
+        raise ValueError(f"{name}: arguments {unknown} are invalid; allowed: {allowed or 'none'}")
+
+
 def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     """A wave damper (or the human/IDM baselines) driving every CAV of ``env``.
 
@@ -238,10 +247,7 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     """
     if name not in DAMPERS:
         raise ValueError(f"damper {name!r} is invalid; allowed: {list(DAMPERS)}")
-    allowed = damper_arguments(name)
-    unknown = sorted(set(kwargs) - set(allowed))
-    if unknown:
-        raise ValueError(f"{name}: arguments {unknown} are invalid; allowed: {allowed or 'none'}")
+    check_damper_arguments(name, kwargs)
     sc = _scenario(env)
     low, high = action_bounds(env)
     params = dataclasses.asdict(sc.hdv_defaults())
@@ -274,4 +280,4 @@ def make_damper(name: str, env, *, seed: int = 0, **kwargs) -> TensorDictModule:
     return TensorDictModule(module, in_keys=[*base, ("cav", "speed_avg")], out_keys=["action"])
 
 
-__all__ = ["make_damper", "damper_arguments", "FollowerStopper", "PISaturation", "Handover", "HumanCAV", "DAMPERS"]
+__all__ = ["make_damper", "damper_arguments", "check_damper_arguments", "FollowerStopper", "PISaturation", "Handover", "HumanCAV", "DAMPERS"]

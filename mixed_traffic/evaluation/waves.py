@@ -176,7 +176,7 @@ def parse_controller(name: str, field: str = "eval.wave.controllers") -> tuple[s
 
 def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: int = 0) -> dict:
     """``{label: (factory(env) -> policy, with_safety_layer)}`` for the wave comparison."""
-    from mixed_traffic.controllers.dampers import DAMPERS, damper_arguments, make_damper
+    from mixed_traffic.controllers.dampers import DAMPERS, check_damper_arguments, make_damper
 
     out = {}
     for name in names:
@@ -186,10 +186,10 @@ def controller_factories(cfg: DictConfig, names, *, policy_factory=None, seed: i
         if damper not in DAMPERS:
             raise ValueError(f"eval.wave.controllers: {name!r} is invalid; allowed: {list(DAMPERS)} (+ 'policy'), "
                              "optionally with arguments, e.g. 'follower_stopper:u_ratio=0.93'")
-        unknown = sorted(set(kwargs) - set(damper_arguments(damper)))
-        if unknown:  # before any controller runs, not when this one's turn comes
-            raise ValueError(f"eval.wave.controllers: {name!r} is invalid: arguments {unknown}; allowed for "
-                             f"{damper}: {damper_arguments(damper) or 'none'}")
+        try:  # before any controller runs, not when this one's turn comes
+            check_damper_arguments(damper, kwargs)
+        except ValueError as e:
+            raise ValueError(f"eval.wave.controllers: {name!r} is invalid: {e}") from e
         factory = (lambda n, kw: (lambda env: make_damper(n, env, seed=seed, **kw)))(damper, kwargs)
         out[name] = (factory, False)
         if cfg.eval.wave.get("classical_with_layer", False) and damper != "human":

@@ -94,7 +94,7 @@ def _blend(tcfg, env):
         damper, kwargs = parse_controller(name, f"transforms.blend.{field}")
         try:
             dampers.append(make_damper(damper, env, **kwargs))
-        except (TypeError, ValueError) as e:  # an unknown damper or argument: name the config field
+        except ValueError as e:  # an unknown damper or argument: name the config field
             raise ValueError(f"transforms.blend.{field}={name!r} is invalid: {e}") from e
     return ControllerBlend(*dampers, rate=c.rate, weight0=c.weight0, weight1=c.weight1, start=c.start, end=c.end)
 
