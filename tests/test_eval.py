@@ -92,6 +92,54 @@ def test_evaluate_a_classical_controller_is_deterministic():
     assert r1["overall"]["collisions"] == 0 and r1["overall"]["episodes"] == 4
 
 
+def test_an_episode_does_not_depend_on_the_batch_it_runs_in():
+    """Episode e of an evaluation is the same whatever else is evaluated: more episodes, other
+    controllers, with or without the layer (the harness seeds rows per episode)."""
+    cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=reward"] + SHORT_EVAL)
+    two, _ = evaluate(cfg, policy_factory=lambda env: make_classic_policy("idm", env), episodes=2)
+    three, _ = evaluate(cfg, policy_factory=lambda env: make_classic_policy("idm", env), episodes=3)
+    assert two["episode_seeds"] == three["episode_seeds"][:2] == [cfg.eval.seed, cfg.eval.seed + 1]
+    for prof in ("random_steps", "emergency_brake"):
+        for k in ("return", "mean_abs_jerk", "max_head_gap"):
+            assert two["profiles"][prof]["per_episode"][k] == three["profiles"][prof]["per_episode"][k][:2]
+    # the random head steps and the humans' parameters differ from episode to episode
+    rs = three["profiles"]["random_steps"]["per_episode"]["return"]
+    assert len(set(rs)) == 3
+
+
+def test_rows_seeded_alone_run_what_a_one_row_env_runs():
+    """seed_rows: row i of a batch runs the episode of a one-row env seeded seeds[i], per-step noise included."""
+    kw = dict(episode_seconds=3.0, hdv_param_noise=0.2, accel_noise=0.3, init_spacing_range=(8.0, 30.0))
+    batch = make_env("ring", batch_size=3, seed=0, **kw)
+    batch.seed_rows([11, 12, 13])
+    one = make_env("ring", batch_size=1, seed=12, **kw)
+    act_b, act_1 = torch.zeros(3, 1), torch.zeros(1, 1)
+    tb, t1 = batch.reset(), one.reset()
+    for _ in range(20):
+        tb = batch.step(tb.set("action", act_b))["next"]
+        t1 = one.step(t1.set("action", act_1))["next"]
+    assert torch.equal(tb["cav", "gap"][1], t1["cav", "gap"][0])
+    assert torch.equal(tb["traffic", "speed"][1], t1["traffic", "speed"][0])  # the noisy humans too
+    assert not torch.equal(tb["cav", "gap"][0], tb["cav", "gap"][1])  # other seeds, other episodes
+    with pytest.raises(ValueError, match="seed_rows: 2 seeds is invalid; allowed: None or one seed per row"):
+        batch.seed_rows([1, 2])
+
+
+def test_paired_differences_need_the_same_episodes():
+    from mixed_traffic.evaluation.results import paired_differences
+
+    def rep(seeds, values):
+        return {"episode_seeds": seeds, "profiles": {"sine": {"per_episode": {"return": values}}}}
+
+    d = paired_differences(rep([5, 6, 7], [3.0, 5.0, 4.0]), rep([5, 6, 7], [1.0, 2.0, 6.0]), "return")["sine"]
+    assert d["mean"] == pytest.approx(1.0) and d["run_lower"] == 1 and d["n"] == 3
+    assert d["se"] == pytest.approx(((4.0 + 1.0 + 9.0) / 2) ** 0.5 / 3 ** 0.5)  # diffs 2, 3, -2
+    with pytest.raises(ValueError, match="episode_seeds .* are invalid; allowed: the same list"):
+        paired_differences(rep([5, 6, 7], [1.0] * 3), rep([1000, 1001, 1002], [1.0] * 3), "return")
+    with pytest.raises(ValueError, match="episode_seeds None"):
+        paired_differences(rep(None, [1.0] * 3), rep([5, 6, 7], [1.0] * 3), "return")
+
+
 def test_report_from_a_trained_checkpoint(tmp_path):
     cfg = compose(["experiment=ring_lagrangian_ppo", "trainer.num_envs=8", "trainer.rollout_len=4",
                    "trainer.total_frames=96", "trainer.progress=false", "trainer.epochs=1",

@@ -17,6 +17,7 @@ torch.Size([4, 10, 1])
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -259,6 +260,7 @@ class TrafficEnv(EnvBase):
         self.J_max = sc.J_max
         self.profile = sc.make_profile()
         self.rng = torch.Generator().manual_seed(0)
+        self.row_rngs: list[torch.Generator] | None = None  # seed_rows
         self.start_period: int | None = None  # share_starts
         B, n = batch_size, sc.n_vehicles
         specs = make_specs(sc, (B,), device=self.device)
@@ -300,10 +302,10 @@ class TrafficEnv(EnvBase):
         self.cav_sum = torch.zeros(B, sc.n_cav, **f)
 
     # ------------------------------------------------------------------ helpers
-    def _initial_positions(self, rows: Tensor) -> tuple[Tensor, Tensor]:
+    def _initial_positions(self, rows: Tensor, rng: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """Initial positions ``[k, n]`` and ring lengths ``[k, 1]`` of the rows being reset
-        (:func:`initial_positions`, from the env's generator)."""
-        return initial_positions(self.scenario, rows, self.rng, device=self.device)
+        (:func:`initial_positions`, from ``rng``, by default the env's generator)."""
+        return initial_positions(self.scenario, rows, self.rng if rng is None else rng, device=self.device)
 
     def _v_eq(self) -> Tensor:
         count = (self.step_count + 1).clamp(max=self._window).to(self.head_sum.dtype)
@@ -375,11 +377,38 @@ class TrafficEnv(EnvBase):
         B = self.batch_size[0]
         self.profile_params = self._sample_profile(torch.arange(B))
 
-    def _sample_profile(self, rows: Tensor) -> Tensor:
+    def _sample_profile(self, rows: Tensor, rng: torch.Generator | None = None) -> Tensor:
         """Fresh profile parameters of the rows ``rows`` (row-aware profiles keep each row's part)."""
+        rng = self.rng if rng is None else rng
         if hasattr(self.profile, "sample_rows"):
-            return self.profile.sample_rows(rows.cpu(), self.rng).to(self.device)
-        return self.profile.sample(int(rows.numel()), self.rng).to(self.device)
+            return self.profile.sample_rows(rows.cpu(), rng).to(self.device)
+        return self.profile.sample(int(rows.numel()), rng).to(self.device)
+
+    def seed_rows(self, seeds: Sequence[int] | None) -> None:
+        """Draw row ``i``'s episodes from a generator of its own, seeded ``seeds[i]``.
+
+        Row ``i`` then runs what a one-row env seeded ``seeds[i]`` runs: the same start (ring
+        length, positions), head profile parameters, humans' parameters and per-step noise,
+        whatever the batch size and whatever the other rows do. The evaluation uses it so that
+        every controller, and one policy with and without its safety layer, meet the same
+        episodes (``mixed_traffic.evaluation.harness``). Takes effect from the next reset;
+        ``None`` goes back to the env's one generator.
+
+        >>> env = TrafficEnv("ring", batch_size=3, episode_seconds=5.0)
+        >>> env.seed_rows([7, 8, 9])
+        >>> one = TrafficEnv("ring", batch_size=1, episode_seconds=5.0)
+        >>> _ = one.set_seed(8)
+        >>> bool((env.reset()["cav", "gap"][1] == one.reset()["cav", "gap"][0]).all())
+        True
+        """
+        if seeds is None:
+            self.row_rngs = None
+            return
+        seeds = [int(s) for s in seeds]
+        if len(seeds) != self.batch_size[0]:
+            raise ValueError(f"seed_rows: {len(seeds)} seeds is invalid; allowed: None or one seed per row "
+                             f"({self.batch_size[0]})")
+        self.row_rngs = [torch.Generator().manual_seed(s) for s in seeds]
 
     # ------------------------------------------------------------------ EnvBase API
     def share_starts(self, period: int | None) -> None:
@@ -425,19 +454,20 @@ class TrafficEnv(EnvBase):
         idx = mask.nonzero().squeeze(-1)
         k = int(idx.numel())
         if k:
-            self.pos[idx], self.ring_len[idx] = self._initial_positions(idx)
+            if self.row_rngs is None:
+                draws = [self._draw_episodes(idx, self.rng)]
+            else:  # each row from its own generator, as a one-row env would draw
+                draws = [self._draw_episodes(idx[j:j + 1], self.row_rngs[int(i)]) for j, i in enumerate(idx)]
+            pos, ring_len, prof, hdv = (torch.cat(parts) for parts in zip(*draws))
+            self.pos[idx], self.ring_len[idx] = pos, ring_len
             if self.v_ref is not None:
                 self.v_ref[idx] = uniform_flow_speed(sc, self.ring_len[idx]).to(self.v_ref.dtype)
             self.vel[idx] = sc.v_init
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
-            self.profile_params[idx] = self._sample_profile(idx)
-            if sc.hdv_param_noise > 0:
-                base = params_as_tensors(self._hdv_base, (k, sc.n_vehicles), device=self.device)
-                for name in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0"):
-                    if name in base:
-                        noise = 1.0 + sc.hdv_param_noise * (2 * torch.rand(k, sc.n_vehicles, generator=self.rng) - 1)
-                        self.hdv_params[name][idx] = base[name] * noise.to(self.device)
+            self.profile_params[idx] = prof
+            for j, name in enumerate(self._noisy_params()):
+                self.hdv_params[name][idx] = hdv[:, j]
             if self.start_period:
                 self._share_starts(mask)
             self.head_hist[idx] = 0.0
@@ -455,6 +485,28 @@ class TrafficEnv(EnvBase):
         false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
         out.update(done=false, terminated=false.clone(), truncated=false.clone(), collision=false.clone())
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _noisy_params(self) -> list[str]:
+        """The humans' parameters drawn per episode (``hdv_param_noise > 0``), in drawing order."""
+        if not self.scenario.hdv_param_noise > 0:
+            return []
+        names = params_as_tensors(self._hdv_base, (), device=self.device)
+        return [n for n in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0") if n in names]
+
+    def _draw_episodes(self, idx: Tensor, rng: torch.Generator):
+        """``(positions, ring lengths, profile parameters, humans' parameters [k, p, n])`` of new
+        episodes for rows ``idx``, drawn from ``rng`` in a fixed order."""
+        sc, k = self.scenario, int(idx.numel())
+        pos, ring_len = self._initial_positions(idx, rng)
+        prof = self._sample_profile(idx, rng)
+        names = self._noisy_params()
+        hdv = torch.zeros(k, len(names), sc.n_vehicles, dtype=self.pos.dtype, device=self.device)
+        if names:
+            base = params_as_tensors(self._hdv_base, (k, sc.n_vehicles), device=self.device)
+            for j, name in enumerate(names):
+                noise = 1.0 + sc.hdv_param_noise * (2 * torch.rand(k, sc.n_vehicles, generator=rng) - 1)
+                hdv[:, j] = base[name] * noise.to(self.device)
+        return pos, ring_len, prof, hdv
 
     def _vtype_decel(self) -> Tensor:
         """Each vehicle's SUMO vType ``decel`` ``[B, n]`` (what SUMO's safe speed assumes of a leader).
@@ -496,7 +548,10 @@ class TrafficEnv(EnvBase):
         # human drivers
         acc = car_following_accel(sc.hdv_model, gap, vel, v_lead, self.hdv_params)
         if sc.accel_noise > 0:
-            noise = torch.randn(vel.shape, generator=self.rng).to(acc)
+            if self.row_rngs is None:
+                noise = torch.randn(vel.shape, generator=self.rng).to(acc)
+            else:
+                noise = torch.cat([torch.randn(1, vel.shape[-1], generator=g) for g in self.row_rngs]).to(acc)
             acc = torch.minimum(torch.maximum(acc + sc.accel_noise * noise, self.hdv_params["a_min"]),
                                 self.hdv_params["a_max"])
         acc = torch.where(self._hdv_mask, acc, torch.zeros_like(acc))

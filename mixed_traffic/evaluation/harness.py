@@ -30,6 +30,14 @@ intervention cost is then 0), so the policy's own command is executed, from the 
 start and from each ``cfg.eval.close_starts`` spacing. All profiles and starts share one
 batched rollout (:func:`run_batched`). Its results are in
 ``report["without_layer"][profile][start]`` and in ``report["acceptance"]``.
+
+Episodes: episode ``e`` of every profile is drawn from its own seed ``seed + e``
+(:func:`episode_seeds`, :meth:`~mixed_traffic.envs.traffic.TrafficEnv.seed_rows`): the head
+profile's parameters, the humans' parameters and any per-step noise are those of a one-row env
+seeded ``seed + e``, whatever the batch holds. So every controller evaluated with the same
+``seed`` and ``episodes`` meets the same episodes, the policy meets the same ones with and
+without its layer, and a comparison can be made episode by episode (``per_episode`` in the
+report); the SUMO evaluation seeds its episodes alike (:mod:`mixed_traffic.evaluation.sumo`).
 """
 
 from __future__ import annotations
@@ -48,6 +56,19 @@ from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_tran
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
            "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after", "return", "mean_J", "safety_clip_rate",
            "mean_abs_delta", "override_rate", "length")
+
+
+def episode_seeds(seed: int, episodes: int) -> list[int]:
+    """Seed of every episode of a profile: ``seed, seed + 1, ...``."""
+    return [int(seed) + e for e in range(int(episodes))]
+
+
+def seed_episodes(env, seeds: list[int]) -> None:
+    """Row ``i`` of ``env`` runs the episode of seed ``seeds[i]`` (a base env without
+    ``seed_rows`` keeps its one generator)."""
+    base = getattr(env, "base_env", env)
+    if hasattr(base, "seed_rows"):
+        base.seed_rows(seeds)
 
 
 @dataclass
@@ -162,6 +183,7 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
     if init_spacing_rows is not None:
         ov["init_spacing_rows"] = tuple(float(x) for x in init_spacing_rows)
     env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, **ov)
+    seed_episodes(env, episode_seeds(seed, episodes))
     if policy_factory is not None:
         policy = policy_factory(env)
     base = env.base_env
@@ -214,6 +236,8 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
     base = env.base_env
     base.set_profile(RowProfiles(tuple(sc.make_profile() for sc in scenarios)))
     rows = torch.arange(P * V * episodes)
+    seeds = episode_seeds(seed, episodes)
+    seed_episodes(env, [seeds[r // (P * V)] for r in rows.tolist()])  # every profile and variant: episode e
     variant = (rows // P) % V
     if layer_free:
         layers = [t for t in env.transform.transforms if hasattr(t, "set_active_rows")]
@@ -265,7 +289,8 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     profiles = list(profiles or cfg.eval.profiles)
     episodes = int(episodes or cfg.eval.episodes)
     seed = int(cfg.eval.seed if seed is None else seed)
-    report = {"episodes_per_profile": episodes, "eval_seed": seed, "profiles": {},
+    report = {"episodes_per_profile": episodes, "eval_seed": seed, "episode_seeds": episode_seeds(seed, episodes),
+              "profiles": {},
               "sumo_safety": bool(env_kwargs(cfg.env).get("sumo_safety", False))}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}

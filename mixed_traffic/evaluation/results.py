@@ -2,9 +2,11 @@
 
     python -m mixed_traffic.evaluation.results outputs/results/*/      # prints a markdown table
     python -m mixed_traffic.evaluation.results --itself RUN... --baseline IDM_RUN   # with / without the layer
+    python -m mixed_traffic.evaluation.results --paired RUN... --baseline IDM_RUN   # episode by episode
 
 Each directory holds ``eval/report.json`` (from ``mt-main``, ``mt-train eval.after_train=true``
-or ``mt-eval``) and, for trained policies, ``summary.json``.
+or ``mt-eval``) and, for trained policies, ``summary.json``; ``--itself`` and ``--paired`` also
+take a directory holding ``report.json`` itself, or the file.
 """
 
 from __future__ import annotations
@@ -70,8 +72,53 @@ def profile_table(run_dirs) -> str:
 
 def _report(d) -> dict:
     d = Path(d)
-    p = d / "eval" / "report.json" if (d / "eval" / "report.json").is_file() else d / "report.json"
+    p = d if d.is_file() else d / "eval" / "report.json" if (d / "eval" / "report.json").is_file() else d / "report.json"
     return json.loads(p.read_text())
+
+
+PAIRED_METRICS = ("return", "mean_abs_jerk_after", "mean_abs_jerk", "max_head_gap", "speed_rmse_steady")
+
+
+def paired_differences(run: dict, baseline: dict, metric: str) -> dict[str, dict]:
+    """Per profile, ``run - baseline`` of ``metric`` episode by episode (reports of the same episodes).
+
+    Returns ``{profile: {"mean", "se", "n", "run", "baseline", "run_lower"}}``: the mean difference, its
+    standard error (sample std / sqrt(n)), the two means and how many episodes the run is below the
+    baseline. Refuses reports whose episodes differ (``episode_seeds``), e.g. one written before the
+    harness seeded its episodes one by one.
+    """
+    seeds = run.get("episode_seeds"), baseline.get("episode_seeds")
+    if seeds[0] is None or seeds[0] != seeds[1]:
+        raise ValueError(f"paired comparison: episode_seeds {seeds[0]} and {seeds[1]} are invalid; allowed: the same "
+                         "list in both reports (evaluate both with the same eval.seed and eval.episodes)")
+    out = {}
+    for prof, r in run["profiles"].items():
+        if prof not in baseline["profiles"]:
+            continue
+        a = r["per_episode"][metric]
+        b = baseline["profiles"][prof]["per_episode"][metric]
+        d = [x - y for x, y in zip(a, b)]
+        n = len(d)
+        se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
+        out[prof] = {"mean": statistics.fmean(d), "se": se, "n": n, "run": statistics.fmean(a),
+                     "baseline": statistics.fmean(b), "run_lower": sum(x < 0 for x in d)}
+    return out
+
+
+def paired_table(run_dirs, baseline_dir, metrics=PAIRED_METRICS) -> str:
+    """Markdown: per run, profile and metric, the run's mean, the baseline's, and the paired difference ± its SE."""
+    base = _report(baseline_dir)
+    lines = [f"Paired with {base.get('policy', baseline_dir)} on the same episodes (difference = run − baseline, "
+             "± standard error over episodes; 'below' = episodes where the run's value is lower).", "",
+             "| run | profile | metric | run | baseline | difference | below |", "|" + "---|" * 7]
+    for d in run_dirs:
+        rep = _report(d)
+        name = Path(d).name if Path(d).name not in ("eval", "eval_paired") else Path(d).parent.name
+        for metric in metrics:
+            for prof, x in paired_differences(rep, base, metric).items():
+                lines.append(f"| {name} | {prof} | {metric} | {x['run']:.4f} | {x['baseline']:.4f} | "
+                             f"{x['mean']:+.4f} ± {x['se']:.4f} | {x['run_lower']} / {x['n']} |")
+    return "\n".join(lines)
 
 
 def itself_table(run_dirs, baseline_dir=None) -> str:
@@ -111,14 +158,20 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    baseline = None
+    if "--baseline" in args:
+        i = args.index("--baseline")
+        baseline = args[i + 1]
+        del args[i:i + 2]
     if "--itself" in args:
         args.remove("--itself")
-        baseline = None
-        if "--baseline" in args:
-            i = args.index("--baseline")
-            baseline = args[i + 1]
-            del args[i:i + 2]
         print(itself_table(args, baseline))
+        sys.exit(0)
+    if "--paired" in args:
+        args.remove("--paired")
+        if baseline is None:
+            sys.exit("--paired needs --baseline DIR (the report the runs are compared with, episode by episode)")
+        print(paired_table(args, baseline))
         sys.exit(0)
     dirs = [a for a in args if a != "--profiles"]
     print(profile_table(dirs) if "--profiles" in sys.argv else table(dirs))

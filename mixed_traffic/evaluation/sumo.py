@@ -17,8 +17,10 @@ Episodes and seeds: episode ``e`` (0-based) of every profile runs on a SUMO env 
 ``seed + e`` (:func:`episode_seeds`); ``episodes`` episodes take ``ceil(episodes / workers)``
 rounds, each round a fresh ``ParallelEnv`` whose worker ``w`` holds episode
 ``round * workers + w``. A SUMO env seeded ``s`` draws the same head profile as a torch
-env with ``batch_size=1`` seeded ``s`` (docs/sumo.md), so :func:`evaluate_on_torch_seeds`
-replays exactly these episodes on the torch backend.
+env with ``batch_size=1`` seeded ``s`` (docs/sumo.md), and so does row ``e`` of the torch
+harness (:func:`mixed_traffic.evaluation.harness.evaluate`, which seeds its episodes alike):
+the torch evaluation with the same ``seed`` replays exactly these episodes.
+:func:`evaluate_on_torch_seeds` does the same one env per episode.
 
 Episode length: ``episode_seconds`` if given, else ``cfg.eval.episode_seconds``, else
 :data:`DEFAULT_EPISODE_SECONDS` (120 s; the scenario's 500 s is slow in SUMO).
@@ -43,17 +45,12 @@ from torchrl.envs import Compose, ParallelEnv, RewardSum, StepCounter, Transform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mixed_traffic.evaluation import harness
-from mixed_traffic.evaluation.harness import episode_metrics, eval_env_overrides
+from mixed_traffic.evaluation.harness import episode_metrics, episode_seeds, eval_env_overrides
 from mixed_traffic.scenarios import get_scenario
 from mixed_traffic.training.builders import TRANSFORMS, check_chain, env_kwargs
 
 DEFAULT_EPISODE_SECONDS = 120.0
 SUMO_ONLY = ("sumo_safety", "sigma", "net_file", "run_dir", "sumo_args", "netconvert")
-
-
-def episode_seeds(seed: int, episodes: int) -> list[int]:
-    """Seed of every episode of a profile: ``seed, seed + 1, ...``."""
-    return [int(seed) + e for e in range(int(episodes))]
 
 
 def eval_config(cfg: DictConfig, episode_seconds: float | None = None) -> DictConfig:
@@ -177,9 +174,8 @@ def evaluate_on_torch_seeds(cfg: DictConfig, policy=None, *, policy_factory=None
                             episode_seconds: float | None = None) -> tuple[dict, dict]:
     """The torch harness on the same episodes as :func:`evaluate_on_sumo`: one ``batch_size=1`` env per seed.
 
-    (``harness.evaluate`` draws all rows of a profile from one batched generator, so its
-    episodes differ from the SUMO ones; here episode ``e`` is ``harness.run_profile`` with
-    ``episodes=1, seed=seed + e``.)
+    Episode ``e`` is ``harness.run_profile`` with ``episodes=1, seed=seed + e``: the episode row ``e``
+    of ``harness.evaluate`` runs too (its rows are seeded per episode), one env per episode.
     """
     cfg = eval_config(cfg, episode_seconds)
     episodes = int(episodes or cfg.eval.episodes)
