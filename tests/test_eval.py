@@ -125,6 +125,36 @@ def test_rows_seeded_alone_run_what_a_one_row_env_runs():
         batch.seed_rows([1, 2])
 
 
+def test_the_metrics_rollout_is_torchrls_rollout_to_the_bit():
+    """rollout_for_metrics keeps fewer keys than env.rollout, not other numbers: a PPO actor, the safety
+    layer, episodes that end on the last step (no reset may write into it)."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from mixed_traffic.evaluation.harness import METRIC_KEYS, rollout_for_metrics
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.training.on_policy import build_ppo
+
+    cfg = compose(["experiment=ring_lagrangian_ppo", "env.episode_seconds=6.0"])
+    torch.manual_seed(0)
+    actor = build_ppo(cfg, make_transformed_env(cfg, num_envs=2, seed=0))[0]
+    runs = []
+    for lean in (False, True):
+        env = make_transformed_env(cfg, num_envs=3, seed=5)
+        env.base_env.seed_rows([5, 6, 7])
+        steps = env.base_env.scenario.max_steps
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            runs.append(rollout_for_metrics(env, actor, steps) if lean
+                        else env.rollout(steps, actor, break_when_any_done=False))
+    ref, lean = runs
+    assert bool(lean["next", "done"][:, -1].all())
+    keys = [("next",) + (k if isinstance(k, tuple) else (k,)) for k in METRIC_KEYS]
+    keys = [k for k in keys if k in ref.keys(True)]
+    assert ("next", "safety", "delta") in keys and len(keys) >= 12
+    for k in keys:
+        assert torch.equal(ref.get(k), lean.get(k)), k
+    assert set(lean.keys(True, True)) == set(keys)
+
+
 def test_paired_differences_need_the_same_episodes():
     from mixed_traffic.evaluation.results import paired_differences
 

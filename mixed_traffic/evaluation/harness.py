@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import torch
 from omegaconf import DictConfig
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
@@ -69,6 +69,39 @@ def seed_episodes(env, seeds: list[int]) -> None:
     base = getattr(env, "base_env", env)
     if hasattr(base, "seed_rows"):
         base.seed_rows(seeds)
+
+
+# what episode_metrics reads of a rollout's "next" (the optional ones where the chain writes them)
+METRIC_KEYS = ("done", "collision", "reward", ("traffic", "time"), ("traffic", "accel"), ("traffic", "J"),
+               ("cav", "gap"), ("cav", "head_gap"), ("cav", "speed"), ("cav", "head_speed"), ("cav", "accel"),
+               ("cav", "override"), ("safety", "clipped"), ("safety", "delta"))
+
+
+def rollout_for_metrics(env, policy, steps: int, callback=None) -> TensorDictBase:
+    """``env.rollout(steps, policy, break_when_any_done=False)`` keeping only :data:`METRIC_KEYS`.
+
+    The same loop as TorchRL's (reset, then ``policy`` and ``step_and_maybe_reset`` per step, a plain
+    ``step`` for the last), so the numbers are the same to the bit; a ``ProbabilisticActor`` runs as
+    :func:`~mixed_traffic.training.plain_actor.deterministic_action` (its deterministic action without
+    the ``TensorDictModule`` bookkeeping). ``env.rollout`` keeps every key of every step: 12 GB for
+    60 episodes of every profile and start (960 rows of 5000 steps); this keeps what the metrics need.
+    Returns a ``[rows, steps]`` tensordict with ``"next"`` only.
+    """
+    from mixed_traffic.training.plain_actor import deterministic_action
+
+    act = deterministic_action(policy)
+    td = env.reset()
+    frames = []
+    for i in range(steps):
+        if i < steps - 1:
+            out, td = env.step_and_maybe_reset(act(td))
+        else:  # as TorchRL's rollout: no reset after the last step (it would write into the last step's state)
+            out = env.step(act(td))
+        frames.append(out.get("next").select(*METRIC_KEYS, strict=False))
+        if callback is not None:
+            callback()
+    nxt = torch.stack(frames, len(env.batch_size))
+    return TensorDict({"next": nxt}, batch_size=nxt.batch_size)
 
 
 @dataclass
@@ -190,7 +223,7 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
     sc = base.scenario
     torch.manual_seed(seed)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.rollout(sc.max_steps, policy, break_when_any_done=False)
+        td = rollout_for_metrics(env, policy, sc.max_steps)
     m, trace = episode_metrics(td, dt=sc.dt, s_min=cfg.eval.s_min, s_max=cfg.eval.s_max,
                                warmup=cfg.eval.warmup_seconds, settle=cfg.eval.settle_seconds)
     env.close()
@@ -252,7 +285,7 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
                disable=not cfg.get("trainer", {}).get("progress", True))
     torch.manual_seed(seed)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.rollout(steps, policy, callback=lambda *_: bar.update(), break_when_any_done=False)
+        td = rollout_for_metrics(env, policy, steps, callback=bar.update)
     bar.close()
     m, trace = episode_metrics(td, dt=base.scenario.dt, s_min=cfg.eval.s_min, s_max=cfg.eval.s_max,
                                warmup=cfg.eval.warmup_seconds, settle=cfg.eval.settle_seconds)
