@@ -277,6 +277,10 @@ class TrafficEnv(EnvBase):
         self._head_lo, self._head_hi = sc.head_accel_bounds
         self._head_idm = params_as_tensors(IDMParams(), (), **f)
         self._hdv_base = sc.hdv_defaults()
+        # the humans' parameters drawn per episode (hdv_param_noise > 0), in drawing order
+        names = params_as_tensors(self._hdv_base, (), device=self.device)
+        self._noisy = [n for n in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0")
+                       if n in names] if sc.hdv_param_noise > 0 else []
         self._window = max(1, int(round(sc.v_eq_window / sc.dt)))
         self._cav_window = max(1, int(round(sc.cav_speed_window / sc.dt)))
         self._hdv_lo = float(self._hdv_base.a_min)
@@ -466,7 +470,7 @@ class TrafficEnv(EnvBase):
             self.acc[idx] = 0.0
             self.step_count[idx] = 0
             self.profile_params[idx] = prof
-            for j, name in enumerate(self._noisy_params()):
+            for j, name in enumerate(self._noisy):
                 self.hdv_params[name][idx] = hdv[:, j]
             if self.start_period:
                 self._share_starts(mask)
@@ -486,20 +490,13 @@ class TrafficEnv(EnvBase):
         out.update(done=false, terminated=false.clone(), truncated=false.clone(), collision=false.clone())
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
-    def _noisy_params(self) -> list[str]:
-        """The humans' parameters drawn per episode (``hdv_param_noise > 0``), in drawing order."""
-        if not self.scenario.hdv_param_noise > 0:
-            return []
-        names = params_as_tensors(self._hdv_base, (), device=self.device)
-        return [n for n in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0") if n in names]
-
     def _draw_episodes(self, idx: Tensor, rng: torch.Generator):
         """``(positions, ring lengths, profile parameters, humans' parameters [k, p, n])`` of new
         episodes for rows ``idx``, drawn from ``rng`` in a fixed order."""
         sc, k = self.scenario, int(idx.numel())
         pos, ring_len = self._initial_positions(idx, rng)
         prof = self._sample_profile(idx, rng)
-        names = self._noisy_params()
+        names = self._noisy
         hdv = torch.zeros(k, len(names), sc.n_vehicles, dtype=self.pos.dtype, device=self.device)
         if names:
             base = params_as_tensors(self._hdv_base, (k, sc.n_vehicles), device=self.device)

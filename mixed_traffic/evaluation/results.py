@@ -113,7 +113,7 @@ def paired_table(run_dirs, baseline_dir, metrics=PAIRED_METRICS) -> str:
              "| run | profile | metric | run | baseline | difference | below |", "|" + "---|" * 7]
     for d in run_dirs:
         rep = _report(d)
-        name = Path(d).name if Path(d).name not in ("eval", "eval_paired") else Path(d).parent.name
+        name = Path(d).name if Path(d).name != "eval" else Path(d).parent.name
         for metric in metrics:
             for prof, x in paired_differences(rep, base, metric).items():
                 lines.append(f"| {name} | {prof} | {metric} | {x['run']:.4f} | {x['baseline']:.4f} | "
