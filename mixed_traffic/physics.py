@@ -80,10 +80,21 @@ def ovm_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, alpha: Num, beta: Num
 
 
 def idm_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, v0: Num, T: Num, a: Num,
-              b: Num, delta: Num, s0: Num, **_) -> Tensor:
-    """Unsaturated IDM acceleration a [1 - (v/v0)^delta - (s*/s)^2]."""
+              b: Num, delta: Num, s0: Num, gap_max: Num | None = None, **_) -> Tensor:
+    """Unsaturated IDM acceleration a [1 - (v/v0)^delta - (s*/s)^2].
+
+    ``gap_max`` (optional, a controller's design bound; humans have none) caps the desired
+    gap's steady part ``s0 + v T`` at ``gap_max sqrt(1 - (v/v0)^delta)``, so that the
+    steady gap ``s*/sqrt(1 - (v/v0)^delta)`` stays at or below ``gap_max`` at every speed
+    (IDM's own steady gap grows without bound as ``v`` nears ``v0``). Where the cap does
+    not bind, the result is IDM's to the bit.
+    """
     dv = v - v_leader
-    s_star = s0 + (v * T + v * dv / (2.0 * torch.sqrt(torch.as_tensor(a * b)))).clamp_min(0.0)
+    headway = v * T
+    if gap_max is not None:
+        free = (1.0 - (v / v0) ** delta).clamp_min(0.0)
+        headway = torch.minimum(headway, gap_max * torch.sqrt(free) - s0)
+    s_star = s0 + (headway + v * dv / (2.0 * torch.sqrt(torch.as_tensor(a * b)))).clamp_min(0.0)
     return a * (1.0 - (v / v0) ** delta - (s_star / gap.clamp_min(1e-3)) ** 2)
 
 

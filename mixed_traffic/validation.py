@@ -232,16 +232,15 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                           "s_min < s_max")
     params = OmegaConf.select(cfg, "transforms.residual.params", default=None)
     if params:
-        import dataclasses
-
-        from mixed_traffic.physics import IDMParams, OVMParams
+        from mixed_traffic.controllers.classic import classic_parameters
 
         model = OmegaConf.select(cfg, "transforms.residual.base", default="idm")
-        allowed = sorted(f.name for f in dataclasses.fields(IDMParams if model == "idm" else OVMParams))
+        allowed = classic_parameters(model)
         for k, v in params.items():
             if k not in allowed:
                 raise ConfigError(f"transforms.residual.params.{k}", f"is not a {model} parameter", str(allowed))
-            Real()(f"transforms.residual.params.{k}", v)
+            if not (k == "gap_max" and v is None):  # gap_max: null is IDM's own (no cap)
+                Real()(f"transforms.residual.params.{k}", v)
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

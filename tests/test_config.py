@@ -52,12 +52,12 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     # the layer's head-gap bound is 2 m inside the evaluation's 40 m
     cfg = compose(["experiment=ring_lagrangian_ppo"])
     assert cfg.policy.apg.iterations > 0 and cfg.trainer.total_frames > 0 and not cfg.policy.shared_trunk
-    assert dict(cfg.transforms.residual.params) == {"s0": 7.0, "v0": 40.0} and cfg.transforms.chain[-1] == "jerk_penalty"
+    assert dict(cfg.transforms.residual.params) == {"s0": 7.0, "v0": 40.0, "gap_max": 34.0} and cfg.transforms.chain[-1] == "jerk_penalty"
     assert (cfg.transforms.safety_layer.s_min, cfg.transforms.safety_layer.s_max) == (5.0, 38.0)
     # the variant that holds a long start gap instead of closing it at full throttle (docs/results.md)
     hold = compose(["experiment=ring_lagrangian_ppo_hold"])
     assert (cfg.transforms.safety_layer.beyond_s_max, hold.transforms.safety_layer.beyond_s_max) == ("push", "hold")
-    assert dict(hold.transforms.residual.params) == {"s0": 7.0, "v0": 40.0, "T": 0.8}
+    assert dict(hold.transforms.residual.params) == {"s0": 7.0, "v0": 40.0, "T": 0.8, "gap_max": None}
     assert (hold.policy.apg.head_gap_max, hold.policy.apg.head_gap_after, hold.transforms.jerk_penalty.weight) == \
         (38.0, 15.0, 15.0)
     assert hold.policy.apg.iterations == cfg.policy.apg.iterations and hold.env.profile == cfg.env.profile

@@ -170,6 +170,16 @@ def test_paired_differences_need_the_same_episodes():
         paired_differences(rep(None, [1.0] * 3), rep([5, 6, 7], [1.0] * 3), "return")
 
 
+def test_results_cli_says_what_paired_needs(capsys):
+    from mixed_traffic.evaluation.results import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--paired", "outputs/some_run"])  # no --baseline: refused before any report is read
+    assert e.value.code == 2 and "--paired needs --baseline DIR" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--paired", "--itself", "a", "--baseline", "b"])  # one table at a time
+
+
 def test_report_from_a_trained_checkpoint(tmp_path):
     cfg = compose(["experiment=ring_lagrangian_ppo", "trainer.num_envs=8", "trainer.rollout_len=4",
                    "trainer.total_frames=96", "trainer.progress=false", "trainer.epochs=1",

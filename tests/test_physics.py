@@ -75,6 +75,44 @@ def test_idm_deeplcc_parameter_set():
     assert acc.item() == pytest.approx(1.0, abs=1e-6)
 
 
+def _steady_gap(v: torch.Tensor, **params) -> torch.Tensor:
+    """The gap at which IDM holds speed ``v`` behind a leader at ``v`` (bisection on a = 0)."""
+    lo, hi = torch.full_like(v, 0.1), torch.full_like(v, 500.0)
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        pulls = idm_accel(mid, v, v, **params) > 0  # gap too large: IDM speeds up
+        hi, lo = torch.where(pulls, mid, hi), torch.where(pulls, lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def test_idm_gap_max_bounds_the_steady_gap_and_is_idm_below_it():
+    p = dict(v0=40.0, T=1.0, a=2.0, b=3.0, delta=4.0, s0=7.0)
+    v = torch.linspace(0.5, 38.0, 76, dtype=torch.float64)
+    free = _steady_gap(v, **p)
+    capped = _steady_gap(v, gap_max=34.0, **p)
+    assert free.max() > 60.0  # IDM's own steady gap leaves any band as v nears v0
+    assert capped.max() <= 34.0 + 1e-6
+    # the steady gap is IDM's where IDM's is inside the cap, and the cap where IDM's is not
+    inside = free < 33.0
+    assert torch.allclose(capped[inside], free[inside], atol=1e-6)
+    assert torch.allclose(capped[free > 35.0], torch.full_like(capped[free > 35.0], 34.0), atol=1e-6)
+    # where the cap does not bind the command is IDM's to the bit, whatever the gap and the leader
+    gap = torch.tensor([3.0, 12.0, 27.0, 80.0])
+    vv, vl = torch.tensor([5.0, 10.0, 20.0, 15.0]), torch.tensor([0.0, 12.0, 18.0, 25.0])
+    assert torch.equal(idm_accel(gap, vv, vl, gap_max=34.0, **p), idm_accel(gap, vv, vl, **p))
+
+
+def test_idm_gap_max_is_checked_where_a_controller_is_built():
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.evaluation.policies import classic_factory
+
+    classic_factory("idm:s0=7.0;v0=40.0;gap_max=34.0")  # accepted from a controller string
+    with pytest.raises(ValueError, match="gap_max must be above the standstill gap s0 = 7.0"):
+        make_classic_policy("idm", low=-3.0, high=3.0, s0=7.0, gap_max=6.0)
+    with pytest.raises(ValueError, match="allowed"):
+        make_classic_policy("ovm", low=-3.0, high=3.0, gap_max=34.0)
+
+
 def test_ring_gaps_wrap():
     L = 100.0
     pos = torch.tensor([[2.0, 90.0, 60.0]])  # head at 2 m has wrapped past the ring end

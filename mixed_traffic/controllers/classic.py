@@ -28,12 +28,19 @@ CLASSIC = ("idm", "ovm")
 class CarFollowingCAV(nn.Module):
     """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules."""
 
-    def __init__(self, model: str, params, low: float, high: float):
+    def __init__(self, model: str, params, low: float, high: float, *, gap_max: float | None = None):
         super().__init__()
         if model not in CLASSIC:
             raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
         self.model = model
         self.params = {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)}
+        if gap_max is not None:
+            if model != "idm":
+                raise ValueError(f"gap_max is an IDM controller's bound; {model!r} has none")
+            if not gap_max > self.params["s0"]:
+                raise ValueError(f"gap_max must be above the standstill gap s0 = {self.params['s0']} m, "
+                                 f"got {gap_max}")
+            self.params["gap_max"] = float(gap_max)
         self.low, self.high = float(low), float(high)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
@@ -47,20 +54,32 @@ def action_bounds(env) -> tuple[float, float]:
     return float(spec.space.low.flatten()[0]), float(spec.space.high.flatten()[0])
 
 
+def classic_parameters(model: str) -> list[str]:
+    """Names ``make_classic_policy(model, ...)`` accepts: the model's parameters (IDM: and ``gap_max``)."""
+    if model not in CLASSIC:
+        raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
+    names = {f.name for f in dataclasses.fields(IDMParams if model == "idm" else OVMParams)}
+    return sorted(names | ({"gap_max"} if model == "idm" else set()))
+
+
 def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
                         **param_overrides) -> TensorDictModule:
     """IDM (SUMO's defaults, as the ring's humans) or OVM (DeeP-LCC's set) driving every CAV.
 
     Bounds come from ``env.action_spec`` unless given; ``param_overrides`` replace model
     parameters (``make_classic_policy("idm", env, T=1.5)``); unknown names raise ValueError.
+    IDM also takes ``gap_max`` (m): the steady gap stays at or below it at every speed
+    (``mixed_traffic.physics.idm_accel``), a bound the humans' IDM does not have.
     """
     if model not in CLASSIC:
         raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
     base = IDMParams() if model == "idm" else OVMParams()
-    allowed = {f.name for f in dataclasses.fields(base)}
-    unknown = set(param_overrides) - allowed
+    allowed = classic_parameters(model)
+    unknown = set(param_overrides) - set(allowed)
     if unknown:
-        raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {sorted(allowed)}")
+        raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {allowed}")
+    param_overrides = dict(param_overrides)
+    gap_max = param_overrides.pop("gap_max", None)
     params = dataclasses.replace(base, **param_overrides)
     if low is None or high is None:
         if env is None:
@@ -68,8 +87,8 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
         env_low, env_high = action_bounds(env)
         low = env_low if low is None else low
         high = env_high if high is None else high
-    return TensorDictModule(CarFollowingCAV(model, params, low, high),
+    return TensorDictModule(CarFollowingCAV(model, params, low, high, gap_max=gap_max),
                             in_keys=[("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")], out_keys=["action"])
 
 
-__all__ = ["make_classic_policy", "action_bounds", "CarFollowingCAV", "CLASSIC"]
+__all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "CarFollowingCAV", "CLASSIC"]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import statistics
-import sys
 from pathlib import Path
 
 COLUMNS = ("policy", "seed", "frames", "train wall (s)", "collisions / episodes", "min gap (m)",
@@ -156,22 +155,32 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
     return "\n".join(lines)
 
 
+def main(argv=None) -> str:
+    """Print a table of run directories' reports (``python -m mixed_traffic.evaluation.results -h``)."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m mixed_traffic.evaluation.results",
+                                description="Tables of evaluation reports (a run directory, its eval/ or report.json).")
+    p.add_argument("runs", nargs="+", help="run directories")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--profiles", action="store_true", help="one row per run and head profile")
+    mode.add_argument("--itself", action="store_true",
+                      help="the policy with and without its layer, per profile and start")
+    mode.add_argument("--paired", action="store_true",
+                      help="episode-by-episode differences against --baseline, +- standard error")
+    p.add_argument("--baseline", default=None, help="a report to compare with (e.g. IDM-as-CAV's run directory)")
+    a = p.parse_args(argv)
+    if a.paired and a.baseline is None:
+        p.error("--paired needs --baseline DIR (the report the runs are compared with, episode by episode)")
+    if a.itself:
+        out = itself_table(a.runs, a.baseline)
+    elif a.paired:
+        out = paired_table(a.runs, a.baseline)
+    else:
+        out = profile_table(a.runs) if a.profiles else table(a.runs)
+    print(out)
+    return out
+
+
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    baseline = None
-    if "--baseline" in args:
-        i = args.index("--baseline")
-        baseline = args[i + 1]
-        del args[i:i + 2]
-    if "--itself" in args:
-        args.remove("--itself")
-        print(itself_table(args, baseline))
-        sys.exit(0)
-    if "--paired" in args:
-        args.remove("--paired")
-        if baseline is None:
-            sys.exit("--paired needs --baseline DIR (the report the runs are compared with, episode by episode)")
-        print(paired_table(args, baseline))
-        sys.exit(0)
-    dirs = [a for a in args if a != "--profiles"]
-    print(profile_table(dirs) if "--profiles" in sys.argv else table(dirs))
+    main()
