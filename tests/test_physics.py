@@ -113,6 +113,25 @@ def test_idm_gap_max_is_checked_where_a_controller_is_built():
         make_classic_policy("ovm", low=-3.0, high=3.0, gap_max=34.0)
 
 
+def test_ring_default_base_holds_its_cap_where_the_humans_idm_falls_back():
+    """The default experiment's residual base, built from its config, pulls up at 38 m behind a 28 m/s head."""
+    from tensordict import TensorDict
+    from transforms import ResidualAction
+
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import make_transformed_env
+
+    def base_command(overrides):
+        env = make_transformed_env(compose(["experiment=ring_lagrangian_ppo"] + overrides), num_envs=1, seed=0)
+        (res,) = [t for t in env.transform if isinstance(t, ResidualAction)]
+        td = TensorDict({("cav", "gap"): torch.tensor([[38.0]]), ("cav", "speed"): torch.tensor([[28.0]]),
+                         ("cav", "leader_speed"): torch.tensor([[28.0]])}, batch_size=[1])
+        return float(res.base_action(td))
+
+    assert base_command([]) > 0.0  # capped: 38 m is beyond its 34-m steady gap, it closes up
+    assert base_command(["transforms.residual.params.gap_max=null"]) < 0.0  # IDM's steady gap is 40.1 m there
+
+
 def test_ring_gaps_wrap():
     L = 100.0
     pos = torch.tensor([[2.0, 90.0, 60.0]])  # head at 2 m has wrapped past the ring end
