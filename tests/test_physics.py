@@ -116,10 +116,10 @@ def test_idm_gap_max_is_checked_where_a_controller_is_built():
 def test_ring_default_base_holds_its_cap_where_the_humans_idm_falls_back():
     """The default experiment's residual base, built from its config, pulls up at 38 m behind a 28 m/s head."""
     from tensordict import TensorDict
-    from transforms import ResidualAction
 
     from mixed_traffic.config import compose
     from mixed_traffic.training.builders import make_transformed_env
+    from transforms import ResidualAction
 
     def base_command(overrides):
         env = make_transformed_env(compose(["experiment=ring_lagrangian_ppo"] + overrides), num_envs=1, seed=0)
