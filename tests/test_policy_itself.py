@@ -300,8 +300,10 @@ def test_classic_controller_spec_with_parameters():
     assert pol.module.params["s0"] == 6.0 and pol.module.params["T"] == 0.8
     with pytest.raises(ValueError, match="controller"):
         classic_factory("idm:s0")
-    with pytest.raises(ValueError, match=r"\['T', 'a'"):
+    with pytest.raises(ValueError, match=r"controller='idm:s9=1': .*\['T', 'a'"):
         classic_factory("idm:s9=1")
+    with pytest.raises(ValueError, match=r"controller='idm:gap_max=2': gap_max must be above .* s0 = 2.5 m"):
+        classic_factory("idm:gap_max=2")
 
 
 # ----------------------------------------------------------------------------- one batched evaluation rollout

@@ -84,7 +84,10 @@ def classic_factory(name: str):
     from mixed_traffic.evaluation.waves import parse_controller
 
     model, params = parse_controller(name, field="controller")
-    make_classic_policy(model, low=-1.0, high=1.0, **params)  # bad names fail here, before any rollout
+    try:  # bad names and values fail here, before any rollout
+        make_classic_policy(model, low=-1.0, high=1.0, **params)
+    except ValueError as e:
+        raise ValueError(f"controller={name!r}: {e}") from None
     return lambda env: make_classic_policy(model, env, **params)
 
 
