@@ -90,12 +90,12 @@ def idm_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, v0: Num, T: Num, a: N
     not bind, the result is IDM's to the bit.
     """
     dv = v - v_leader
+    speed_term = (v / v0) ** delta
     headway = v * T
     if gap_max is not None:
-        free = (1.0 - (v / v0) ** delta).clamp_min(0.0)
-        headway = torch.minimum(headway, gap_max * torch.sqrt(free) - s0)
+        headway = torch.minimum(headway, gap_max * torch.sqrt((1.0 - speed_term).clamp_min(0.0)) - s0)
     s_star = s0 + (headway + v * dv / (2.0 * torch.sqrt(torch.as_tensor(a * b)))).clamp_min(0.0)
-    return a * (1.0 - (v / v0) ** delta - (s_star / gap.clamp_min(1e-3)) ** 2)
+    return a * (1.0 - speed_term - (s_star / gap.clamp_min(1e-3)) ** 2)
 
 
 def saturate_accel(acc: Tensor, gap: Tensor, v: Tensor, v_leader: Tensor, *,

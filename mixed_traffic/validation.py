@@ -239,8 +239,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         for k, v in params.items():
             if k not in allowed:
                 raise ConfigError(f"transforms.residual.params.{k}", f"is not a {model} parameter", str(allowed))
-            if not (k == "gap_max" and v is None):  # gap_max: null is IDM's own (no cap)
-                Real()(f"transforms.residual.params.{k}", v)
+            Real(optional=k == "gap_max")(f"transforms.residual.params.{k}", v)  # gap_max: null is IDM's own
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

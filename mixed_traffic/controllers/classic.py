@@ -71,10 +71,8 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
     IDM also takes ``gap_max`` (m): the steady gap stays at or below it at every speed
     (``mixed_traffic.physics.idm_accel``), a bound the humans' IDM does not have.
     """
-    if model not in CLASSIC:
-        raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
+    allowed = classic_parameters(model)  # an unknown model fails here
     base = IDMParams() if model == "idm" else OVMParams()
-    allowed = classic_parameters(model)
     unknown = set(param_overrides) - set(allowed)
     if unknown:
         raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {allowed}")

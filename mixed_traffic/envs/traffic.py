@@ -278,7 +278,7 @@ class TrafficEnv(EnvBase):
         self._head_idm = params_as_tensors(IDMParams(), (), **f)
         self._hdv_base = sc.hdv_defaults()
         # the humans' parameters drawn per episode (hdv_param_noise > 0), in drawing order
-        names = params_as_tensors(self._hdv_base, (), device=self.device)
+        names = {f.name for f in dataclasses.fields(self._hdv_base)}
         self._noisy = [n for n in ("alpha", "beta", "v_max", "s_st", "s_go", "v0", "T", "a", "b", "s0")
                        if n in names] if sc.hdv_param_noise > 0 else []
         self._window = max(1, int(round(sc.v_eq_window / sc.dt)))
