@@ -49,7 +49,8 @@ class EnvConfig:
     scenario: str = "ring"
     backend: str = "torch"
     observation: str | None = None  # "seed" ([v/30, p/L]), "relative" (per-CAV physical features), "relative_accel"
-    # ("relative" + the leader's acceleration), "relative_no_speed" ("relative" less the CAV's speed) or "wave"
+    # ("relative" + the leader's acceleration), "relative_no_speed" ("relative" less the CAV's speed),
+    # "relative_time" ("relative" + the time since engaging, saturating at 30 s) or "wave"
     profile: str | None = None
     profile_kwargs: dict[str, Any] | None = None
     episode_seconds: float | None = None
@@ -81,6 +82,8 @@ class SafetyLayerConfig:
     # "ramp" (hold, and push with a demand rising at ramp_jerk m/s^3 from the current acceleration)
     beyond_s_max: str = "push"
     ramp_jerk: float = 1.0
+    # during the first hold_seconds of an episode a head gap beyond s_max is only held (0: push from the start)
+    hold_seconds: float = 0.0
 
 
 @dataclass

@@ -55,6 +55,9 @@ class TrafficScenario:
     * ``observation="relative_no_speed"``: ``"relative"`` without the CAV's own speed ``v/30``:
       differences and gaps only, so a policy cannot tie its command to the speeds it trained at
       (the speed still reaches the command through a residual's base controller);
+    * ``observation="relative_time"``: ``"relative"`` plus the time since the controller
+      engaged (the episode's start) / 30 s, saturating at 1: a policy can close a long gap it
+      engages with differently from one that opens later (the safety layer's ``hold_seconds``);
     * ``observation="wave_ring"``: ``"wave"`` plus the ring's length / 260 m (what sets the
       ring's uniform-flow speed, from which FollowerStopper's set point is computed);
     * ``observation="wave_ring_time"``: ``"wave_ring"`` plus the time since the controller
@@ -287,12 +290,12 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "wave", "wave_ring",
-                                    "wave_ring_time"):
+        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "relative_time", "wave",
+                                    "wave_ring", "wave_ring_time"):
             bad("observation", self.observation,
-                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'wave', 'wave_ring' or "
+                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'relative_time', 'wave', 'wave_ring' or "
                 "'wave_ring_time'")
-        if self.observation in ("relative", "relative_accel", "relative_no_speed") and not self.head:
+        if self.observation in ("relative", "relative_accel", "relative_no_speed", "relative_time") and not self.head:
             bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:
             bad("profile", self.profile, sorted(PROFILES))

@@ -18,7 +18,7 @@ def test_check_env_specs(scenario, batch):
     check_env_specs(make_env(scenario, batch_size=batch, seed=0))
 
 
-@pytest.mark.parametrize("observation", ["seed", "relative", "relative_accel", "relative_no_speed"])
+@pytest.mark.parametrize("observation", ["seed", "relative", "relative_accel", "relative_no_speed", "relative_time"])
 def test_observation_modes(observation):
     env = make_env("ring", batch_size=4, seed=0, observation=observation)
     check_env_specs(env)
@@ -44,6 +44,14 @@ def test_relative_accel_observes_the_leaders_last_acceleration():
     # "relative_no_speed": the same features less the CAV's own speed
     c = make_env("ring", observation="relative_no_speed", **kw).rollout(60, act)
     assert torch.equal(c["next", "observation"], a["next", "observation"][..., 1:])
+    # "relative_time": the same features plus the time since engaging / 30 s, saturating at 1,
+    # and back to 0 when an episode starts again
+    env = make_env("ring", observation="relative_time", episode_seconds=40.0, **kw)
+    d = env.rollout(500, act, break_when_any_done=False)
+    assert torch.equal(d["next", "observation"][:, :60, :7], a["next", "observation"])
+    t = d["next", "traffic", "time"][..., 0]
+    assert torch.allclose(d["next", "observation"][..., 7], (t / 30.0).clamp(max=1.0))
+    assert float(d["observation"][:, 0, 7].abs().max()) == 0.0 and float(d["observation"][:, 450, 7].max()) < 1.0
 
 
 def test_ring_preset_matches_the_seed_layout():

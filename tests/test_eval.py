@@ -170,6 +170,18 @@ def test_paired_differences_need_the_same_episodes():
         paired_differences(rep(None, [1.0] * 3), rep([5, 6, 7], [1.0] * 3), "return")
 
 
+def test_paired_table_names_a_run_however_it_is_given(tmp_path):
+    """A run given as its directory, its ``eval/`` or its ``report.json`` is named by the run directory."""
+    from mixed_traffic.evaluation.results import paired_table
+
+    rep = {"episode_seeds": [5, 6], "policy": "idm", "profiles": {"sine": {"per_episode": {"return": [1.0, 2.0]}}}}
+    (tmp_path / "seed3" / "eval").mkdir(parents=True)
+    (tmp_path / "seed3" / "eval" / "report.json").write_text(json.dumps(rep))
+    for given in ("seed3", "seed3/eval", "seed3/eval/report.json"):
+        rows = paired_table([tmp_path / given], tmp_path / "seed3", metrics=("return",)).splitlines()
+        assert rows[-1].startswith("| seed3 | sine | return | 1.5000 | 1.5000 | +0.0000"), (given, rows[-1])
+
+
 def test_results_cli_says_what_paired_needs(capsys):
     from mixed_traffic.evaluation.results import main
 

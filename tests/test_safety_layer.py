@@ -296,6 +296,34 @@ def test_hold_beyond_s_max_through_the_env_leaves_a_long_start_to_the_command():
         SafetyLayer(beyond_s_max="back")
 
 
+def test_hold_seconds_leaves_a_long_start_to_the_command_then_pushes():
+    """``hold_seconds``: from the 73 m start a zero command is executed as is for the first 5 s
+    (the gap is only held), then the layer pushes at the bound as ``"push"`` does from t = 0;
+    s_min still wins throughout (the head brakes hard in emergency_brake)."""
+    def run(hold):
+        env = TransformedEnv(make_env("ring", batch_size=2, seed=0), SafetyLayer(s_min=5.0, s_max=38.0, hold_seconds=hold))
+        return env.rollout(100, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
+
+    held, pushed = run(5.0), run(0.0)
+    t, accel = held["traffic", "time"][..., 0], held["next", "cav", "accel"][..., 0]
+    assert float(accel[t < 5.0 - 1e-6].abs().max()) < 1e-4  # held: the command runs
+    assert torch.allclose(accel[:, 50], torch.tensor(3.0), atol=1e-4)  # then pushed at the bound
+    assert torch.allclose(pushed["next", "cav", "accel"][:, 0], torch.tensor(3.0), atol=1e-4)
+    ramp = TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                          SafetyLayer(s_min=5.0, s_max=38.0, beyond_s_max="ramp", hold_seconds=5.0))
+    td = ramp.rollout(60, lambda td: td.set("action", torch.zeros_like(ramp.action_spec.low)))
+    a = td["next", "cav", "accel"][..., 0]
+    assert float(a[:, :50].abs().max()) < 1e-4 and float(a[:, 50:].max()) <= 1.0 * 10 * 0.1 + 1e-4  # then ramps
+    assert float(a[:, 59].min()) > 0.5
+    # the head's step 50-53 s braking to 2 m/s: a CAV commanded full throttle keeps s_min
+    env = TransformedEnv(make_env("ring", batch_size=2, seed=0, profile="emergency_brake", profile_kwargs={}),
+                         SafetyLayer(s_min=5.0, s_max=38.0, hold_seconds=1e3))
+    td = env.rollout(800, lambda td: td.set("action", torch.full_like(env.action_spec.low, 3.0)))
+    assert float(td["next", "cav", "gap"].min()) >= 5.0 - 1e-4 and not td["next", "collision"].any()
+    with pytest.raises(ValueError, match="hold_seconds=-1.0 is invalid; allowed: >= 0"):
+        SafetyLayer(hold_seconds=-1.0)
+
+
 def test_ramp_beyond_s_max_closes_a_long_start_with_bounded_jerk():
     """``beyond_s_max="ramp"``: from the 73 m start a zero command is pushed with an acceleration that
     rises by ramp_jerk * dt per step (no full-throttle step), and the gap is brought inside s_max."""

@@ -175,12 +175,14 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
                 head_gap: Tensor | None, head_speed: Tensor | None, low: Tensor | float, high: Tensor | float,
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
                 leader_brake: Tensor | float | None = None, beyond_s_max: str = "push",
-                accel: Tensor | None = None, ramp_jerk: float = 1.0) -> Tensor:
+                accel: Tensor | None = None, ramp_jerk: float = 1.0, hold_mask: Tensor | None = None) -> Tensor:
     """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
 
     ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``;
     ``beyond_s_max`` (``"push"`` / ``"hold"`` / ``"ramp"``, the last with the CAV's current
-    acceleration ``accel`` and ``ramp_jerk``): see the module docstring.
+    acceleration ``accel`` and ``ramp_jerk``): see the module docstring. ``hold_mask`` (bool,
+    broadcastable to ``action``) marks the entries where a head gap beyond ``s_max`` is only
+    held whatever ``beyond_s_max`` says (:class:`SafetyLayer`'s ``hold_seconds``).
     """
     low = torch.as_tensor(low, dtype=action.dtype, device=action.device)
     high = torch.as_tensor(high, dtype=action.dtype, device=action.device)
@@ -197,6 +199,10 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
         else:
             a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
                                     beyond=beyond_s_max)
+        if hold_mask is not None and beyond_s_max != "hold":
+            held_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
+                                       beyond="hold")
+            a_lo = torch.where(hold_mask, held_lo, a_lo)
         a = torch.maximum(a, torch.minimum(a_lo, high))
     if s_min is not None:
         if mode == "one_step":
@@ -253,6 +259,11 @@ class SafetyLayer(Transform):
             closes it) or ``"ramp"`` (held, and closed with a demand that rises from the
             current acceleration at ``ramp_jerk``); ``"stopping"`` mode only.
         ramp_jerk: the ``"ramp"`` demand's rate of rise (m/s^3, > 0).
+        hold_seconds: during the first ``hold_seconds`` of an episode (``time_key`` below that)
+            a head gap beyond ``s_max`` is only held, whatever ``beyond_s_max`` says: a CAV
+            that engages far behind the head closes the gap at its own pace, and the layer
+            pushes only a CAV that has not closed it by then (s, >= 0; 0: from the start).
+        time_key: the episode time entry ``hold_seconds`` reads (default ``("traffic", "time")``).
         leader_brake: braking bound (> 0, m/s^2) of each CAV's leader, a float or one
             value per CAV; ``None`` reads it from the parent's ``scenario``
             (:func:`scenario_leader_brake`), else uses the CAV's own bound.
@@ -283,7 +294,9 @@ class SafetyLayer(Transform):
 
     def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
                  mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
-                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, action_key: NestedKey = "action", cav_keys: dict[str, NestedKey] | None = None,
+                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, hold_seconds: float = 0.0,
+                 time_key: NestedKey = ("traffic", "time"), action_key: NestedKey = "action",
+                 cav_keys: dict[str, NestedKey] | None = None,
                  out_keys: Sequence[NestedKey] = (("safety", "clipped"), ("safety", "delta"))):
         if mode not in MODES:
             raise ValueError(f"SafetyLayer: mode={mode!r} is invalid; allowed: {list(MODES)}")
@@ -291,6 +304,8 @@ class SafetyLayer(Transform):
             raise ValueError(f"SafetyLayer: beyond_s_max={beyond_s_max!r} is invalid; allowed: {list(BEYOND_S_MAX)}")
         if not ramp_jerk > 0:
             raise ValueError(f"SafetyLayer: ramp_jerk={ramp_jerk!r} is invalid; allowed: > 0 (m/s^3)")
+        if not hold_seconds >= 0:
+            raise ValueError(f"SafetyLayer: hold_seconds={hold_seconds!r} is invalid; allowed: >= 0 (s)")
         if s_min is not None and not s_min > 0:
             raise ValueError(f"SafetyLayer: s_min={s_min!r} is invalid; allowed: > 0 or None")
         if s_max is not None and not s_max > 0:
@@ -313,7 +328,7 @@ class SafetyLayer(Transform):
             raise ValueError(f"SafetyLayer: out_keys={out_keys!r} is invalid; allowed: two keys (clipped, delta)")
         super().__init__(in_keys=[], out_keys=list(out_keys), in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.s_min, self.s_max, self.mode, self.beyond_s_max = s_min, s_max, mode, beyond_s_max
-        self.ramp_jerk = float(ramp_jerk)
+        self.ramp_jerk, self.hold_seconds, self.time_key = float(ramp_jerk), float(hold_seconds), time_key
         self._dt = dt
         self._leader_brake = leader_brake
         self.action_key = action_key
@@ -388,6 +403,7 @@ class SafetyLayer(Transform):
             leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
             beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk,
             accel=tensordict.get(k["accel"]) if need_head and self.beyond_s_max == "ramp" else None,
+            hold_mask=self._hold_mask(tensordict) if need_head else None,
         )
         commanded = torch.minimum(torch.maximum(action, low), high)
         if self.active_rows is not None:
@@ -401,6 +417,17 @@ class SafetyLayer(Transform):
         tensordict.set(self.delta_key, delta)
         tensordict.set(self.clipped_key, delta != 0)
         return tensordict
+
+    def _hold_mask(self, tensordict: TensorDictBase) -> Tensor | None:
+        """Rows (``[B, 1]``) still inside ``hold_seconds``; ``None`` when it is 0 or ``beyond_s_max`` holds anyway."""
+        if self.hold_seconds == 0 or self.beyond_s_max == "hold":
+            return None
+        time = tensordict.get(self.time_key, None)
+        if time is None:
+            raise KeyError(f"SafetyLayer: hold_seconds={self.hold_seconds} reads the episode time, but "
+                           f"{self.time_key!r} is not in the tensordict; allowed: an env that reports it, or "
+                           "hold_seconds=0")
+        return time.reshape(time.shape[0], -1)[:, :1] < self.hold_seconds
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         return carry_to_next(tensordict, next_tensordict, self.clipped_key, self.delta_key)

@@ -41,8 +41,9 @@ Tensor = torch.Tensor
 
 
 # ----------------------------------------------------------------------------- shared pieces
-OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "wave": 5, "wave_ring": 6,
-                "wave_ring_time": 7}
+OBS_FEATURES = {"seed": None, "relative": 7, "relative_accel": 8, "relative_no_speed": 6, "relative_time": 8,
+                "wave": 5, "wave_ring": 6, "wave_ring_time": 7}
+ENGAGE_SECONDS = 30.0  # observation="relative_time": the time since engaging saturates here
 
 
 def observation_dim(sc: TrafficScenario) -> int:
@@ -168,6 +169,10 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
             feats.append(accel[..., [i - 1 for i in ci]] / a_scale)
         elif sc.observation == "relative_no_speed":
             feats = feats[1:]
+        elif sc.observation == "relative_time":  # time since the controller engaged, saturating at 30 s
+            if time is None:
+                raise ValueError("observe: observation='relative_time' needs the episode time (time=)")
+            feats.append((time / ENGAGE_SECONDS).clamp(0.0, 1.0).expand_as(v))
     return torch.stack(feats, dim=-1).flatten(-2)
 
 

@@ -69,10 +69,24 @@ def profile_table(run_dirs) -> str:
     return "\n".join(lines)
 
 
-def _report(d) -> dict:
+def _report_path(d) -> Path:
+    """The report a run is given by: ``report.json`` itself, its ``eval/`` directory or the run directory."""
     d = Path(d)
-    p = d if d.is_file() else d / "eval" / "report.json" if (d / "eval" / "report.json").is_file() else d / "report.json"
-    return json.loads(p.read_text())
+    if d.is_file():
+        return d
+    if (d / "eval" / "report.json").is_file():
+        return d / "eval" / "report.json"
+    return d / "report.json"
+
+
+def _report(d) -> dict:
+    return json.loads(_report_path(d).read_text())
+
+
+def _run_name(d) -> str:
+    """The run directory's name, however the run is given (``run/``, ``run/eval/``, ``run/eval/report.json``)."""
+    folder = _report_path(d).parent
+    return folder.parent.name if folder.name == "eval" else folder.name
 
 
 PAIRED_METRICS = ("return", "mean_abs_jerk_after", "mean_abs_jerk", "max_head_gap", "speed_rmse_steady")
@@ -112,7 +126,7 @@ def paired_table(run_dirs, baseline_dir, metrics=PAIRED_METRICS) -> str:
              "| run | profile | metric | run | baseline | difference | below |", "|" + "---|" * 7]
     for d in run_dirs:
         rep = _report(d)
-        name = Path(d).name if Path(d).name != "eval" else Path(d).parent.name
+        name = _run_name(d)
         for metric in metrics:
             for prof, x in paired_differences(rep, base, metric).items():
                 lines.append(f"| {name} | {prof} | {metric} | {x['run']:.4f} | {x['baseline']:.4f} | "
@@ -145,10 +159,10 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
             rep = _report(d)
             r = rep["profiles"][prof]
             m = r["metrics"]
-            lines.append(f"| {prof} | {Path(d).name} | on | standard | {cells(r)} | {m['safety_clip_rate']['mean']:.3f} | "
+            lines.append(f"| {prof} | {_run_name(d)} | on | standard | {cells(r)} | {m['safety_clip_rate']['mean']:.3f} | "
                          f"{m['mean_abs_delta']['mean']:.3f} |")
             for label, q in rep.get("without_layer", {}).get(prof, {}).items():
-                lines.append(f"| {prof} | {Path(d).name} | off | {label} | {cells(q, after=True)} | – | – |")
+                lines.append(f"| {prof} | {_run_name(d)} | off | {label} | {cells(q, after=True)} | – | – |")
         if base is not None:
             lines.append(f"| {prof} | {base.get('policy', 'baseline')} | off | standard | "
                          f"{cells(base['profiles'][prof])} | – | – |")
