@@ -18,6 +18,11 @@ from mixed_traffic.physics import IDMParams, OVMParams, ovm_equilibrium_gap
 from mixed_traffic.profiles import PROFILES, make_profile
 from mixed_traffic.validation import ConfigError, Real, is_real
 
+# the policy inputs a scenario can give (``TrafficScenario.observation``); the ones built around a head
+OBSERVATIONS = ("seed", "relative", "relative_accel", "relative_no_speed", "relative_time", "wave", "wave_ring",
+                "wave_ring_time")
+HEAD_OBSERVATIONS = ("relative", "relative_accel", "relative_no_speed", "relative_time")
+
 
 @dataclass
 class TrafficScenario:
@@ -290,12 +295,10 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
-        if self.observation not in ("seed", "relative", "relative_accel", "relative_no_speed", "relative_time", "wave",
-                                    "wave_ring", "wave_ring_time"):
+        if self.observation not in OBSERVATIONS:
             bad("observation", self.observation,
-                "'seed', 'relative', 'relative_accel', 'relative_no_speed', 'relative_time', 'wave', 'wave_ring' or "
-                "'wave_ring_time'")
-        if self.observation in ("relative", "relative_accel", "relative_no_speed", "relative_time") and not self.head:
+                ", ".join(map(repr, OBSERVATIONS[:-1])) + f" or {OBSERVATIONS[-1]!r}")
+        if self.observation in HEAD_OBSERVATIONS and not self.head:
             bad("observation", self.observation, "'seed' or 'wave' without a head (head=False)")
         if self.profile not in PROFILES:
             bad("profile", self.profile, sorted(PROFILES))

@@ -153,16 +153,15 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
                 f"{m['speed_rmse_steady']['mean']:.3f} | {m['mean_abs_jerk']['mean']:.3f} | "
                 f"{m.get('mean_abs_jerk_after', {'mean': math.nan})['mean']:.3f} | {m['return']['mean']:.1f}")
 
-    first = _report(run_dirs[0])
-    for prof in first["profiles"]:
-        for d in run_dirs:
-            rep = _report(d)
+    runs = [(_run_name(d), _report(d)) for d in run_dirs]  # each report read once
+    for prof in runs[0][1]["profiles"]:
+        for name, rep in runs:
             r = rep["profiles"][prof]
             m = r["metrics"]
-            lines.append(f"| {prof} | {_run_name(d)} | on | standard | {cells(r)} | {m['safety_clip_rate']['mean']:.3f} | "
+            lines.append(f"| {prof} | {name} | on | standard | {cells(r)} | {m['safety_clip_rate']['mean']:.3f} | "
                          f"{m['mean_abs_delta']['mean']:.3f} |")
             for label, q in rep.get("without_layer", {}).get(prof, {}).items():
-                lines.append(f"| {prof} | {_run_name(d)} | off | {label} | {cells(q, after=True)} | – | – |")
+                lines.append(f"| {prof} | {name} | off | {label} | {cells(q, after=True)} | – | – |")
         if base is not None:
             lines.append(f"| {prof} | {base.get('policy', 'baseline')} | off | standard | "
                          f"{cells(base['profiles'][prof])} | – | – |")
