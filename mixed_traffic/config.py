@@ -319,6 +319,7 @@ class APGConfig:
     gap_margin: float | None = None
     head_gap_max: float | None = None  # ring: a head gap (m) above which the excess is priced as cost ...
     head_gap_after: float = 0.0  # ... from this time (s) into the episode on
+    average_last: int = 0  # the policy kept is the mean of the parameters after each of the last N steps (0: the last)
 
 
 @dataclass

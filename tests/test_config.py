@@ -61,6 +61,15 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     assert (hold.policy.apg.head_gap_max, hold.policy.apg.head_gap_after, hold.transforms.jerk_penalty.weight) == \
         (38.0, 15.0, 15.0)
     assert hold.policy.apg.iterations == cfg.policy.apg.iterations and hold.env.profile == cfg.env.profile
+    # the smooth-start variant: the default with these settings changed and nothing else (docs/results.md)
+    smooth = compose(["experiment=ring_lagrangian_ppo_smooth"])
+    changed = {"name": "ring_lagrangian_ppo_smooth", "env.profile_kwargs.v_init": None,
+               "transforms.safety_layer.hold_seconds": 15.0, "transforms.residual.params.v0": 60.0,
+               "transforms.residual.params.gap_max": 30.0, "transforms.jerk_penalty.weight": 12.5,
+               "policy.apg.head_gap_max": 37.0, "policy.apg.head_gap_after": 15.0, "policy.apg.average_last": 50}
+    assert {k: OmegaConf.select(smooth, k) for k in changed} == changed
+    same = compose(["experiment=ring_lagrangian_ppo", *(f"{k}={'null' if v is None else v}" for k, v in changed.items())])
+    assert OmegaConf.to_container(same, resolve=False) == OmegaConf.to_container(smooth, resolve=False)
     old = compose(["experiment=ring_lagrangian_ppo_no_apg"])
     assert old.policy.apg.iterations == 0 and old.transforms.safety_layer.s_max == 30.0 and old.trainer.lr == 3e-4
     scratch = compose(["experiment=ring_lagrangian_ppo_scratch"])

@@ -203,6 +203,31 @@ def test_apg_prices_a_head_gap_above_head_gap_max():
     assert losses[1] - losses[0] == pytest.approx(30.0 * float(excess.mean()), rel=1e-6)
 
 
+def test_apg_average_last_keeps_the_mean_of_the_last_steps_parameters():
+    """``policy.apg.average_last: N``: the actor ends on the mean of its parameters after each of the
+    last N steps. APG is deterministic under the seed, so the runs of 1 and 2 steps are the 2-step
+    run's own trajectory; a count above the steps is refused naming the field."""
+    from mixed_traffic.training.apg import apg_pretrain
+
+    def params_after(iterations: int, average_last: int = 0) -> list[torch.Tensor]:
+        cfg = compose(["experiment=ring_lagrangian_ppo", f"policy.apg.iterations={iterations}",
+                       f"policy.apg.average_last={average_last}", "policy.apg.num_envs=2", "policy.apg.horizon=3",
+                       "trainer.progress=false"])
+        torch.manual_seed(0)
+        actor, _ = make_actor_critic(cfg, make_transformed_env(cfg, num_envs=2, seed=0))
+        apg_pretrain(actor, cfg, log=None)
+        return [p.detach().clone() for p in actor.parameters() if p.requires_grad]
+
+    one, two, mean = params_after(1), params_after(2), params_after(2, average_last=2)
+    assert any(not torch.equal(a, b) for a, b in zip(one, two))  # the second step moved the policy
+    for a, b, m in zip(one, two, mean):
+        torch.testing.assert_close(m, (a + b) / 2, rtol=1e-6, atol=1e-7)
+    assert all(torch.equal(a, b) for a, b in zip(params_after(2, average_last=1), two))
+    with pytest.raises(ValueError, match=r"policy.apg.average_last=3 is invalid; allowed: an integer in \[0, "
+                                         r"policy.apg.iterations=2\]"):
+        params_after(2, average_last=3)
+
+
 def test_apg_alone_trains_and_saves_a_policy(tmp_path):
     """``trainer.total_frames=0`` with ``policy.apg``: the APG-trained actor is the run's final policy."""
     from mixed_traffic.evaluation.policies import checkpoint_config

@@ -105,8 +105,10 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     ``policy.apg.without``, with ``policy.apg.num_envs`` rows); the loss of a window is the mean over rows and steps of
     ``J / J_ref[profile] + cost_coeff * cost`` on the platoon (``J`` the DeeP-LCC stage cost,
     ``cost`` the spacing constraint's), ``-reward + cost_coeff * cost`` on the torch ring (the
-    chain's reward and constraint cost, e.g. the layer's priced intervention). Returns
-    ``{"iterations", "loss_first", "loss_last", "seconds"}``.
+    chain's reward and constraint cost, e.g. the layer's priced intervention). With
+    ``policy.apg.average_last: N`` the actor keeps the mean of its parameters after each of the
+    last N steps (a Polyak / stochastic-weight average) instead of the last step's, which carry
+    the noise of the last few windows. Returns ``{"iterations", "loss_first", "loss_last", "seconds"}``.
     """
     from mixed_traffic.envs.traffic import TrafficEnv
     from mixed_traffic.training.builders import make_transformed_env
@@ -132,6 +134,10 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     head_after = float(a.get("head_gap_after") or 0.0)
     if not head_after >= 0:
         raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
+    average_last = a.get("average_last") or 0
+    if not (isinstance(average_last, int) and 0 <= average_last <= a.iterations):
+        raise ValueError(f"policy.apg.average_last={average_last!r} is invalid; allowed: an integer in "
+                         f"[0, policy.apg.iterations={a.iterations}]")
     env = make_transformed_env(cfg, num_envs=a.num_envs, seed=int(cfg.seed) + 7_919, without=without)
     base = env.base_env
     if type(base) not in (PlatoonEnv, TrafficEnv):  # the SUMO backends and the intersection are not differentiable
@@ -147,6 +153,7 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     params = [p for p in actor.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=a.lr)
     t0, losses = time.perf_counter(), []
+    averaged = [torch.zeros_like(p) for p in params] if average_last else None
     td = env.reset()
     base.differentiable = True  # the platoon cuts the graph at the action unless told not to
     try:
@@ -163,6 +170,9 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, a.max_grad_norm)
                 opt.step()
+                if averaged is not None and it >= a.iterations - average_last:
+                    for s_, p in zip(averaged, params):
+                        s_.add_(p.detach(), alpha=1.0 / average_last)
                 losses.append(float(loss.detach()))
                 bar.set_postfix(window_loss=f"{losses[-1]:.4f}", refresh=False)
                 if ended:  # the rows run in lockstep: a window ends where their episodes end
@@ -173,6 +183,10 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     finally:
         base.differentiable = False
         cut_graph(env)
+    if averaged is not None:  # Polyak average of the last steps: less of the last windows' noise in the policy
+        with torch.no_grad():
+            for s_, p in zip(averaged, params):
+                p.copy_(s_)
     env.close()
     return {"iterations": a.iterations, "loss_first": losses[0], "loss_last": losses[-1],
             "seconds": time.perf_counter() - t0}
