@@ -172,3 +172,15 @@ def test_installed_script_rejects_a_misspelt_key(tmp_path):
     assert out.returncode != 0
     assert "totl_frames" in out.stderr and "Could not override" in out.stderr
     assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("final.pt"))
+
+
+def test_small_budget_keeps_the_main_jobs_apg_settings_valid():
+    """``MT_SMALL_BUDGET=1 mt-main`` shrinks APG to 3 steps; the default's ``average_last`` (50)
+    shrinks with it instead of failing APG's check after the run has started."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT, apply_small_budget
+
+    cfg = compose([f"experiment={DEFAULT_EXPERIMENT}"])
+    assert cfg.policy.apg.average_last > 3
+    apply_small_budget(cfg)
+    assert cfg.policy.apg.iterations == 3 and cfg.policy.apg.average_last == 3
+    assert cfg.trainer.total_frames <= 4 * cfg.trainer.num_envs * cfg.trainer.rollout_len
