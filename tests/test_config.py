@@ -66,7 +66,8 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     changed = {"name": "ring_lagrangian_ppo_smooth", "env.profile_kwargs.v_init": None,
                "transforms.safety_layer.hold_seconds": 15.0, "transforms.residual.params.v0": 60.0,
                "transforms.residual.params.gap_max": 30.0, "transforms.jerk_penalty.weight": 12.5,
-               "policy.apg.head_gap_max": 37.0, "policy.apg.head_gap_after": 15.0, "policy.apg.average_last": 50}
+               "policy.apg.head_gap_max": 37.0, "policy.apg.head_gap_after": 15.0, "policy.apg.average_last": 50,
+               "policy.apg.iterations": 100, "policy.apg.num_envs": 128, "trainer.total_frames": 50000}
     assert {k: OmegaConf.select(smooth, k) for k in changed} == changed
     same = compose(["experiment=ring_lagrangian_ppo", *(f"{k}={'null' if v is None else v}" for k, v in changed.items())])
     assert OmegaConf.to_container(same, resolve=False) == OmegaConf.to_container(smooth, resolve=False)
