@@ -65,7 +65,7 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     smooth = compose(["experiment=ring_lagrangian_ppo_smooth"])
     changed = {"name": "ring_lagrangian_ppo_smooth", "env.profile_kwargs.v_init": None,
                "transforms.safety_layer.hold_seconds": 15.0, "transforms.residual.params.v0": 60.0,
-               "transforms.residual.params.gap_max": 30.0, "transforms.jerk_penalty.weight": 12.5,
+               "transforms.residual.params.gap_max": 27.0, "transforms.jerk_penalty.weight": 12.5,
                "policy.apg.head_gap_max": 37.0, "policy.apg.head_gap_after": 15.0, "policy.apg.average_last": 50,
                "policy.apg.iterations": 100, "policy.apg.num_envs": 128, "trainer.total_frames": 50000}
     assert {k: OmegaConf.select(smooth, k) for k in changed} == changed

@@ -358,3 +358,29 @@ def test_batched_evaluation_matches_one_profile_at_a_time():
                             init_spacing_rows=[8.0])
         assert torch.allclose(free[prof]["8 m"][0]["return"], m8["return"], atol=1e-3)
         assert torch.allclose(free[prof]["8 m"][0]["min_gap"], m8["min_gap"], atol=1e-4)
+
+
+def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up():
+    """benchmarks/ring_jerk_by_time.py: the windows' shares add up to the report's whole-episode mean |jerk|
+    (first step not counted), and the mean from a time on is that of those steps alone."""
+    import importlib.util
+    import os
+
+    from mixed_traffic.evaluation.harness import episode_metrics, rollout_for_metrics
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("ring_jerk_by_time", os.path.join(root, "benchmarks", "ring_jerk_by_time.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    env = make_env("ring", batch_size=3, seed=0, episode_seconds=8.0)
+    gen = torch.Generator().manual_seed(0)
+    td = rollout_for_metrics(env, lambda td: td.set("action", 6 * torch.rand(3, 1, generator=gen) - 3), 80)
+    m, trace = episode_metrics(td, dt=0.1, s_min=5.0, s_max=40.0, warmup=0.0, settle=1.0)
+    out = mod.jerk_shares(trace, 0.1, edges=(0.0, 2.0, 5.0, float("inf")), from_seconds=5.0)
+    assert sum(out["shares"]) == pytest.approx(out["whole"], rel=1e-5)
+    assert out["whole"] == pytest.approx(float(m["mean_abs_jerk"].mean()), rel=1e-5)
+    a = trace.cav_accel
+    late = (a[:, 1:] - a[:, :-1]).abs()[:, trace.time[0, 1:] >= 5.0] / 0.1
+    assert out["after"] == pytest.approx(float(late.mean()), rel=1e-5)
+    assert min(out["shares"]) > 0.0  # random commands: every window has jerk

@@ -1,0 +1,92 @@
+"""Where in the episode a ring policy's jerk is, next to IDM driving the CAV on the same episodes.
+
+The report's ``mean_abs_jerk`` is the mean of ``|a_t - a_{t-1}| / dt`` over a whole episode
+(the first step, whose previous acceleration is unknown, not counted). This splits that mean
+into the share of each time window (the shares add up to the whole-episode figure), for the
+trained policy behind its layer and for IDM-as-CAV without one, on the evaluation profiles and
+episodes of the run's config (``eval.seed``, ``eval.episodes``), and prints one table per
+profile plus the mean from ``--from-seconds`` on::
+
+    python benchmarks/ring_jerk_by_time.py --checkpoint outputs/results/ring_smooth_seed0 \\
+        --out outputs/results/ring_smooth_seed0/jerk_by_time.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+EDGES = (0.0, 2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 60.0, float("inf"))
+
+
+def jerk_shares(trace, dt: float, edges=EDGES, from_seconds: float = 5.0) -> dict:
+    """Per window ``[lo, hi)``: its steps' summed ``|jerk|`` over all valid steps (so the windows add
+    up to the whole-episode mean), averaged over episodes; and the mean ``|jerk|`` from ``from_seconds`` on."""
+    a = trace.cav_accel
+    jerk = (a[:, 1:] - a[:, :-1]).abs() / dt
+    valid = trace.valid[:, 1:]
+    t = trace.time[:, 1:]
+    n = valid.sum(1).clamp_min(1)
+    shares = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = valid & (t >= lo) & (t < hi)
+        shares.append(float(((jerk * m).sum(1) / n).mean()))
+    late = valid & (t >= from_seconds)
+    return {"edges": list(edges), "shares": shares, "whole": float(((jerk * valid).sum(1) / n).mean()),
+            "from_seconds": from_seconds,
+            "after": float(((jerk * late).sum(1) / late.sum(1).clamp_min(1)).mean()),
+            "after_per_episode": ((jerk * late).sum(1) / late.sum(1).clamp_min(1)).tolist()}
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--checkpoint", required=True, help="final.pt or a run directory")
+    p.add_argument("--profiles", nargs="+", default=None, help="default: the run's eval.profiles")
+    p.add_argument("--baseline", default="idm", help="classical controller run without a layer (default idm)")
+    p.add_argument("--from-seconds", type=float, default=5.0, help="also report the mean |jerk| from here on")
+    p.add_argument("--out", default=None, help="write the figures as JSON here")
+    a = p.parse_args(argv)
+    if not a.from_seconds >= 0:
+        p.error(f"--from-seconds={a.from_seconds} is invalid; allowed: >= 0")
+
+    import torch
+    from omegaconf import open_dict
+
+    from mixed_traffic.evaluation.harness import run_profile
+    from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
+
+    torch.set_num_threads(1)
+    cfg, state = checkpoint_config(a.checkpoint)
+    factory = policy_factory_from_state(cfg, state)
+    base_cfg = cfg.copy()
+    with open_dict(base_cfg):
+        base_cfg.transforms.chain = ["non_negative_reward"]
+    out = {"checkpoint": str(a.checkpoint), "baseline": a.baseline, "profiles": {}}
+    for prof in a.profiles or list(cfg.eval.profiles):
+        rows = {}
+        for name, c, fac in (("policy", cfg, factory), (a.baseline, base_cfg, classic_factory(a.baseline))):
+            _, trace = run_profile(c, None, prof, episodes=int(cfg.eval.episodes), seed=int(cfg.eval.seed),
+                                   policy_factory=fac)
+            rows[name] = jerk_shares(trace, float(trace.time[0, 1] - trace.time[0, 0]), from_seconds=a.from_seconds)
+        out["profiles"][prof] = rows
+        head = " | ".join(f"{lo:g}-{hi:g} s" for lo, hi in zip(EDGES[:-1], EDGES[1:]))
+        print(f"\n{prof}\n| controller | whole | {head} | from {a.from_seconds:g} s |\n|" + "---|" * (len(EDGES) + 2))
+        for name, r in rows.items():
+            print(f"| {name} | {r['whole']:.4f} | " + " | ".join(f"{s:.4f}" for s in r["shares"]) + f" | {r['after']:.4f} |")
+        pol, base = rows["policy"], rows[a.baseline]
+        worse = sum(x > y for x, y in zip(pol["after_per_episode"], base["after_per_episode"]))
+        print(f"from {a.from_seconds:g} s: policy {100 * (pol['after'] / base['after'] - 1):+.1f} % against "
+              f"{a.baseline}; above it on {worse} of {len(pol['after_per_episode'])} episodes")
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    main()
