@@ -26,21 +26,21 @@ EDGES = (0.0, 2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 60.0, float("inf"))
 
 def jerk_shares(trace, dt: float, edges=EDGES, from_seconds: float = 5.0) -> dict:
     """Per window ``[lo, hi)``: its steps' summed ``|jerk|`` over all valid steps (so the windows add
-    up to the whole-episode mean), averaged over episodes; and the mean ``|jerk|`` from ``from_seconds`` on."""
-    a = trace.cav_accel
-    jerk = (a[:, 1:] - a[:, :-1]).abs() / dt
-    valid = trace.valid[:, 1:]
-    t = trace.time[:, 1:]
+    up to the whole-episode mean), averaged over episodes; and the mean ``|jerk|`` from ``from_seconds`` on.
+    The jerk and its steps are the report's (:func:`~mixed_traffic.evaluation.harness.abs_jerk`)."""
+    from mixed_traffic.evaluation.harness import abs_jerk
+
+    jerk, valid = abs_jerk(trace.cav_accel, trace.valid, dt)
+    t = trace.time
     n = valid.sum(1).clamp_min(1)
     shares = []
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = valid & (t >= lo) & (t < hi)
         shares.append(float(((jerk * m).sum(1) / n).mean()))
     late = valid & (t >= from_seconds)
+    after = (jerk * late).sum(1) / late.sum(1).clamp_min(1)
     return {"edges": list(edges), "shares": shares, "whole": float(((jerk * valid).sum(1) / n).mean()),
-            "from_seconds": from_seconds,
-            "after": float(((jerk * late).sum(1) / late.sum(1).clamp_min(1)).mean()),
-            "after_per_episode": ((jerk * late).sum(1) / late.sum(1).clamp_min(1)).tolist()}
+            "from_seconds": from_seconds, "after": float(after.mean()), "after_per_episode": after.tolist()}
 
 
 def main(argv=None) -> dict:

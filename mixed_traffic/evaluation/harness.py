@@ -126,6 +126,16 @@ def first_done_mask(done: torch.Tensor) -> torch.Tensor:
     return before == 0
 
 
+def abs_jerk(accel: torch.Tensor, valid: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``|a_t - a_{t-1}| / dt`` per step of ``[episodes, T]`` accelerations (0 at the first step) and the
+    steps it counts on: ``valid`` less the first step, whose previous acceleration is unknown."""
+    jerk = torch.zeros_like(accel)
+    jerk[:, 1:] = (accel[:, 1:] - accel[:, :-1]).abs() / dt
+    jvalid = valid.clone()
+    jvalid[:, 0] = False
+    return jerk, jvalid
+
+
 def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float, warmup: float,
                     settle: float) -> tuple[dict[str, torch.Tensor], Trace]:
     """Per-episode metrics of a ``[episodes, T]`` rollout (see the module docstring)."""
@@ -167,10 +177,7 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     has_steady = steady.sum(1) > 0
     out["speed_rmse_steady"] = torch.where(has_steady, masked_mean(err2, steady).sqrt(), out["speed_rmse"])
     out["mean_abs_accel"] = masked_mean(a.abs(), valid)
-    jerk = torch.zeros_like(a)
-    jerk[:, 1:] = (a[:, 1:] - a[:, :-1]).abs() / dt
-    jvalid = valid.clone()
-    jvalid[:, 0] = False
+    jerk, jvalid = abs_jerk(a, valid, dt)
     out["mean_abs_jerk"] = masked_mean(jerk, jvalid)
     out["mean_abs_jerk_after"] = masked_mean(jerk, jvalid & after)
     out["return"] = (nxt.get("reward").squeeze(-1) * valid).sum(1)
