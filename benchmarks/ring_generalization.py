@@ -136,16 +136,16 @@ def main(argv=None) -> dict:
     for name, r in results.items():
         p_ = r["policy"]
         lines.append(f"| {name} | policy + layer | {p_['collisions']} | {p_['min_gap']:.2f} | – | "
-                     f"{p_['max_head_gap']:.1f} | {p_['steady_rmse']:.3f} | {p_['jerk']:.2f} | {p_['return']:.0f} | "
+                     f"{p_['max_head_gap']:.1f} | {p_['steady_rmse']:.3f} | {p_['jerk']:.4f} | {p_['return']:.0f} | "
                      f"{p_['intervention_rate']:.3f} |")
         for label, q in r["policy_without_layer"].items():
             lines.append(f"| {name} | policy, no layer, start {label} | {q['collisions']} | {q['min_gap']:.2f} | "
                          f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {q['steady_rmse']:.3f} | "
-                         f"{q['jerk']:.2f} | {q['return']:.0f} | – |")
+                         f"{q['jerk']:.4f} | {q['return']:.0f} | – |")
         for spec in a.baselines:
             i_ = r[spec]
             lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, no layer | {i_['collisions']} | {i_['min_gap']:.2f} "
-                         f"| – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.2f} | "
+                         f"| – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.4f} | "
                          f"{i_['return']:.0f} | – |")
     md = "\n".join(lines) + "\n"
     (out / "generalization.md").write_text(md)

@@ -132,11 +132,14 @@ class ResidualConfig:
 
     ``params`` override the base model's parameters (``transforms.residual.params.s0=6.0``: an IDM
     that stops 6 m behind its leader); unknown names fail when the env is built, naming the allowed ones.
+    ``engage_seconds`` (s, >= 0): the residual's weight rises linearly from 0 at the episode's start
+    to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
     """
 
     base: str = "idm"
     weight: float = 0.5
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
+    engage_seconds: float = 0.0
 
 
 @dataclass

@@ -103,6 +103,11 @@ class TrafficScenario:
     # speed and the accel/decel bounds (torch: mixed_traffic.physics.sumo_speed_mode_95; SUMO: the
     # mode itself); both backends then emit ("cav", "override") and count env.override_steps
     sumo_safety: bool = False
+    # every vehicle's acceleration at reset (what the first observation and the first step's jerk
+    # penalty read): "zero", or "model": the humans' model at the start state for the humans and the
+    # CAVs (as if they had been driving before the controller engaged), the head's first command
+    # (torch backend)
+    reset_accel: str = "zero"
     # reward (DeeP-LCC cost) and constraint cost
     weight_v: float = 1.0
     weight_s: float = 0.5
@@ -295,6 +300,8 @@ class TrafficScenario:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
+        if self.reset_accel not in ("zero", "model"):
+            bad("reset_accel", self.reset_accel, "'zero' or 'model'")
         if self.observation not in OBSERVATIONS:
             bad("observation", self.observation,
                 ", ".join(map(repr, OBSERVATIONS[:-1])) + f" or {OBSERVATIONS[-1]!r}")

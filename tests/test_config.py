@@ -65,10 +65,16 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
     smooth = compose(["experiment=ring_lagrangian_ppo_smooth"])
     changed = {"name": "ring_lagrangian_ppo_smooth", "env.profile_kwargs.v_init": None,
                "transforms.safety_layer.hold_seconds": 15.0, "transforms.residual.params.v0": 60.0,
-               "transforms.residual.params.gap_max": 27.0, "transforms.jerk_penalty.weight": 12.5,
+               "transforms.residual.params.gap_max": 27.0, "transforms.residual.engage_seconds": 5.0,
+               "transforms.jerk_penalty.weight": 12.5,
                "policy.apg.head_gap_max": 37.0, "policy.apg.head_gap_after": 15.0, "policy.apg.average_last": 50,
                "policy.apg.iterations": 100, "policy.apg.num_envs": 128, "trainer.total_frames": 50000}
     assert {k: OmegaConf.select(smooth, k) for k in changed} == changed
+    from mixed_traffic.training.builders import make_transformed_env
+    from transforms import ResidualAction
+
+    residual = [t for t in make_transformed_env(smooth, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    assert [r.engage_seconds for r in residual] == [5.0]  # the setting reaches the transform
     same = compose(["experiment=ring_lagrangian_ppo", *(f"{k}={'null' if v is None else v}" for k, v in changed.items())])
     assert OmegaConf.to_container(same, resolve=False) == OmegaConf.to_container(smooth, resolve=False)
     old = compose(["experiment=ring_lagrangian_ppo_no_apg"])

@@ -54,6 +54,31 @@ def test_relative_accel_observes_the_leaders_last_acceleration():
     assert float(d["observation"][:, 0, 7].abs().max()) == 0.0 and float(d["observation"][:, 450, 7].max()) < 1.0
 
 
+def test_reset_accel_model_starts_from_the_drivers_commands_and_leaves_the_motion_alone():
+    """``reset_accel="model"``: at reset every car reports the command its model gives at the start
+    state (the CAV: the humans' IDM, as if it had been driving) instead of 0, and the CAV's own
+    acceleration feature of the first observation says so; positions and speeds are those of
+    ``"zero"`` to the bit under the same actions."""
+    from mixed_traffic.physics import IDMParams, idm_accel
+
+    kw = dict(batch_size=3, seed=0, profile="sine", profile_kwargs={}, observation="relative",
+              init_spacing_rows=(8.0, 40.0, 73.4))
+    zero, model = make_env("ring", **kw), make_env("ring", reset_accel="model", **kw)
+    z, m = zero.reset(), model.reset()
+    assert float(z["traffic", "accel"].abs().max()) == 0.0
+    p = IDMParams()
+    gap, v = m["traffic", "gap"], m["traffic", "speed"]
+    want = idm_accel(gap[:, 1], v[:, 1], v[:, 0], v0=p.v0, T=p.T, a=p.a, b=p.b, delta=p.delta, s0=p.s0)
+    assert torch.allclose(m["cav", "accel"][:, 0], want.clamp(-3.0, 3.0))
+    assert float(m["cav", "accel"][2, 0]) > 1.0 and float(m["cav", "accel"][0, 0]) < 0.0  # far: speeds up; close: brakes
+    assert torch.allclose(m["observation"][:, -1], m["cav", "accel"][:, 0] / 3.0)
+    assert float(m["traffic", "accel"][:, 0].min()) > 1.0  # the sine head's first command
+    act = lambda td: td.set("action", torch.full((3, 1), 0.3))  # noqa: E731
+    a, b = zero.rollout(50, act, tensordict=z), model.rollout(50, act, tensordict=m)
+    for key in (("next", "traffic", "pos"), ("next", "traffic", "speed"), ("next", "traffic", "accel")):
+        assert torch.equal(a[key], b[key])
+
+
 def test_ring_preset_matches_the_seed_layout():
     env = make_env("ring", batch_size=2, seed=0)
     sc = env.scenario
@@ -159,6 +184,7 @@ def test_deeplcc_preset_starts_at_equilibrium():
         (dict(hdv_model="krauss"), "hdv_model"),
         (dict(cav_accel_bounds=(1.0, 3.0)), "cav_accel_bounds"),
         (dict(ringlength=300.0), "unknown override"),
+        (dict(reset_accel="idm"), "reset_accel"),
     ],
 )
 def test_bad_input_names_the_field(overrides, field):

@@ -205,6 +205,8 @@ def test_bad_input_shows_sumo_message_and_leaves_nothing_running(tmp_path):
         make_env("ring", backend="sumo", integration="euler_explicit")
     with pytest.raises(ValueError, match="sigma"):
         make_env("ring", backend="sumo", sigma=2.0)
+    with pytest.raises(ValueError, match="reset_accel"):
+        make_env("ring", backend="sumo", reset_accel="model")
     assert not libsumo.isLoaded()
     # a prebuilt network of the wrong length is refused; the right one works
     net = build_ring_network(313.65, str(tmp_path))

@@ -272,6 +272,24 @@ def test_residual_action_executes_clipped_sum_and_logs_base():
         ResidualAction(idm, weight=-1.0)
 
 
+def test_residual_engages_linearly_over_engage_seconds_and_again_after_a_reset():
+    """``engage_seconds``: the base drives alone at the episode's start, the residual's weight rises
+    linearly to ``weight`` at ``engage_seconds`` and stays there; a new episode engages again."""
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    base_env = make_env("ring", batch_size=2, seed=0, episode_seconds=2.0)
+    env = TransformedEnv(base_env, ResidualAction(make_classic_policy("idm", base_env), weight=0.5,
+                                                  engage_seconds=1.0))
+    td = env.rollout(30, lambda td: td.set("action", torch.ones(2, 1)), break_when_any_done=False)
+    added = td["next", "cav", "accel"] - td["next", "residual", "base_action"]  # 0.5 * w(t) * 1
+    t = td["traffic", "time"]  # the time the command was given at
+    assert torch.allclose(added, 0.5 * (t / 1.0).clamp(max=1.0), atol=1e-5)
+    assert float(added[:, 15].min()) > 0.49  # engaged after 1 s
+    assert float(added[:, 0].abs().max()) < 1e-6 and float(added[:, 20].abs().max()) < 1e-6  # each episode's start
+    with pytest.raises(ValueError, match="engage_seconds"):
+        ResidualAction(make_classic_policy("idm", base_env), engage_seconds=-1.0)
+
+
 # ----------------------------------------------------------------------------- docstrings
 @pytest.mark.parametrize("module", [
     "transforms.safety_layer", "transforms.lagrangian", "transforms.rewards", "transforms.discretizer",

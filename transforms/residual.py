@@ -36,6 +36,11 @@ class ResidualAction(Transform):
             seen by the policy becomes ``Bounded(low, high)`` (e.g. ``(-1, 1)``: a policy whose
             distribution is centred on 0 then starts as the base controller, and
             ``weight`` is the largest correction in m/s^2). Default: the parent's bounds.
+        engage_seconds: the residual's weight rises linearly from 0 at the episode's start (time 0
+            of ``time_key``) to ``weight`` at ``engage_seconds`` (>= 0; 0, the default: at once). A
+            bumpless engagement: the base drives alone at first, so taking over a car whose own
+            last acceleration is unknown starts from the base's command, not from the policy's.
+        time_key: the episode time (s) read with ``engage_seconds`` (default ``("traffic", "time")``).
 
     Example:
         >>> from mixed_traffic import make_env
@@ -53,9 +58,12 @@ class ResidualAction(Transform):
                  base_out_key: NestedKey | None = None,
                  base_action_key: NestedKey = ("residual", "base_action"),
                  low: float | None = None, high: float | None = None,
-                 policy_bounds: tuple[float, float] | None = None):
+                 policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
+                 time_key: NestedKey = ("traffic", "time")):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
+        if not engage_seconds >= 0:
+            raise ValueError(f"ResidualAction: engage_seconds={engage_seconds!r} is invalid; allowed: >= 0 (s)")
         if low is not None and high is not None and not low < high:
             raise ValueError(f"ResidualAction: low={low!r}, high={high!r} are invalid; allowed: low < high")
         if policy_bounds is not None and not (len(policy_bounds) == 2 and policy_bounds[0] < policy_bounds[1]):
@@ -65,6 +73,7 @@ class ResidualAction(Transform):
         self.policy_bounds = None if policy_bounds is None else (float(policy_bounds[0]), float(policy_bounds[1]))
         self.base = base
         self.weight = float(weight)
+        self.engage_seconds, self.time_key = float(engage_seconds), time_key
         self.action_key = action_key
         if base_out_key is None:
             out_keys = getattr(base, "out_keys", None)
@@ -96,7 +105,11 @@ class ResidualAction(Transform):
             raise KeyError(f"ResidualAction: {self.action_key!r} not found in the input tensordict")
         a_base = self.base_action(tensordict).to(a_res.dtype).reshape(a_res.shape)
         low, high = self._bounds(a_res)
-        executed = torch.minimum(torch.maximum(a_base + self.weight * a_res, low), high)
+        weight = self.weight
+        if self.engage_seconds > 0:
+            t = tensordict.get(self.time_key).to(a_res.dtype).reshape(*a_res.shape[:-1], -1)[..., :1]
+            weight = weight * (t / self.engage_seconds).clamp(0.0, 1.0)
+        executed = torch.minimum(torch.maximum(a_base + weight * a_res, low), high)
         tensordict.set(self.action_key, executed)
         tensordict.set(self.base_action_key, a_base)
         return tensordict
@@ -117,4 +130,5 @@ class ResidualAction(Transform):
         return with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.base_action_key)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(weight={self.weight}, base={type(self.base).__name__})"
+        engage = f", engage_seconds={self.engage_seconds}" if self.engage_seconds else ""
+        return f"{type(self).__name__}(weight={self.weight}{engage}, base={type(self.base).__name__})"

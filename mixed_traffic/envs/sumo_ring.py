@@ -316,6 +316,8 @@ class SumoRingEnv(EnvBase):
             bad("road", sc.road, "'ring'")
         if sc.hdv_model != "idm":
             bad("hdv_model", sc.hdv_model, "'idm' (SUMO's IDM)")
+        if sc.reset_accel != "zero":
+            bad("reset_accel", sc.reset_accel, "'zero' (SUMO starts every vehicle at rest acceleration)")
         if sc.integration not in ("euler", "ballistic"):
             bad("integration", sc.integration, "'euler' (SUMO's default) or 'ballistic'")
         if sc.init_spacing_range is not None:

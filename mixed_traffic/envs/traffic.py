@@ -472,13 +472,19 @@ class TrafficEnv(EnvBase):
             if self.v_ref is not None:
                 self.v_ref[idx] = uniform_flow_speed(sc, self.ring_len[idx]).to(self.v_ref.dtype)
             self.vel[idx] = sc.v_init
-            self.acc[idx] = 0.0
             self.step_count[idx] = 0
             self.profile_params[idx] = prof
             for j, name in enumerate(self._noisy):
                 self.hdv_params[name][idx] = hdv[:, j]
             if self.start_period:
                 self._share_starts(mask)
+            self.acc = self.acc.clone()
+            self.acc[idx] = 0.0
+            if sc.reset_accel == "model":
+                model = self._drivers_accel(self._gaps(self.pos), self.vel, torch.roll(self.vel, 1, dims=-1),
+                                            noise=False)
+                model[:, self._cav] = model[:, self._cav].clamp(self._a_lo, self._a_hi)
+                self.acc[idx] = model[idx].to(self.acc.dtype)
             self.head_hist[idx] = 0.0
             self.head_sum[idx] = 0.0
             self._push_head_speed_rows(idx)
@@ -537,6 +543,29 @@ class TrafficEnv(EnvBase):
         self.head_hist[idx, 0] = v
         self.head_sum[idx] = v
 
+    def _drivers_accel(self, gap: Tensor, vel: Tensor, v_lead: Tensor, *, noise: bool) -> Tensor:
+        """Every vehicle's command ``[B, n]`` from this state but the CAVs' own: the humans' model
+        (with ``accel_noise`` when ``noise``) in every column, the head's profile command in column 0."""
+        sc = self.scenario
+        acc = car_following_accel(sc.hdv_model, gap, vel, v_lead, self.hdv_params)
+        if noise and sc.accel_noise > 0:
+            if self.row_rngs is None:
+                draw = torch.randn(vel.shape, generator=self.rng).to(acc)
+            else:
+                draw = torch.cat([torch.randn(1, vel.shape[-1], generator=g) for g in self.row_rngs]).to(acc)
+            acc = torch.minimum(torch.maximum(acc + sc.accel_noise * draw, self.hdv_params["a_min"]),
+                                self.hdv_params["a_max"])
+        if sc.head:
+            # head: track the profile's next speed within its bounds; on a ring never into its leader
+            t_next = (self.step_count + 1).to(vel.dtype) * sc.dt
+            v_target = self.profile.speed(t_next, self.profile_params)
+            a_head = ((v_target - vel[:, 0]) / sc.dt).clamp(self._head_lo, self._head_hi)
+            if sc.is_ring:
+                a_safe = idm_accel(gap[:, 0], vel[:, 0], v_lead[:, 0], **self._head_idm)
+                a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
+            acc = torch.cat([a_head.unsqueeze(-1), acc[:, 1:]], -1)
+        return acc
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         sc = self.scenario
         action = tensordict.get("action")
@@ -547,25 +576,7 @@ class TrafficEnv(EnvBase):
         pos, vel = self.pos, self.vel
         gap = self._gaps(pos)
         v_lead = torch.roll(vel, 1, dims=-1)
-        # human drivers
-        acc = car_following_accel(sc.hdv_model, gap, vel, v_lead, self.hdv_params)
-        if sc.accel_noise > 0:
-            if self.row_rngs is None:
-                noise = torch.randn(vel.shape, generator=self.rng).to(acc)
-            else:
-                noise = torch.cat([torch.randn(1, vel.shape[-1], generator=g) for g in self.row_rngs]).to(acc)
-            acc = torch.minimum(torch.maximum(acc + sc.accel_noise * noise, self.hdv_params["a_min"]),
-                                self.hdv_params["a_max"])
-        acc = torch.where(self._hdv_mask, acc, torch.zeros_like(acc))
-        if sc.head:
-            # head: track the profile's next speed within its bounds; on a ring never into its leader
-            t_next = (self.step_count + 1).to(vel.dtype) * sc.dt
-            v_target = self.profile.speed(t_next, self.profile_params)
-            a_head = ((v_target - vel[:, 0]) / sc.dt).clamp(self._head_lo, self._head_hi)
-            if sc.is_ring:
-                a_safe = idm_accel(gap[:, 0], vel[:, 0], v_lead[:, 0], **self._head_idm)
-                a_head = torch.minimum(a_head, a_safe).clamp_min(self._head_lo)
-            acc[:, 0] = a_head
+        acc = self._drivers_accel(gap, vel, v_lead, noise=True)
         acc[:, self._cav] = action.to(acc.dtype).clamp(self._a_lo, self._a_hi)
         if sc.sumo_safety:
             acc[:, self._cav], over = self._speed_mode_95(acc[:, self._cav], gap, vel)
