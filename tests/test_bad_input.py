@@ -8,6 +8,7 @@ import errno
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -279,8 +280,10 @@ def test_7_wandb_keeps_the_run_config_and_resumes_the_same_run(tmp_path, monkeyp
     run_id = (run / "logs" / "wandb_run_id").read_text()
     train(compose(base), resume=run)
     assert (run / "logs" / "wandb_run_id").read_text() == run_id
-    dirs = {p.name.rsplit("-", 1)[-1] for p in (run / "logs" / "wandb").glob("offline-run-*")}
-    assert dirs == {run_id}  # one wandb run, continued
+    # offline-run-<YYYYmmdd_HHMMSS>-<id>, with "-<n>" added when a resume starts in the same second
+    names = [p.name for p in (run / "logs" / "wandb").glob("offline-run-*")]
+    dirs = {m.group(1) for m in (re.fullmatch(r"offline-run-\d{8}_\d{6}-([0-9a-z]+)(?:-\d+)?", n) for n in names) if m}
+    assert len(names) == 2 and dirs == {run_id}  # one wandb run, continued
     from mixed_traffic.training.run import make_logger
 
     cfg = compose(base)
