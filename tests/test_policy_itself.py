@@ -1,6 +1,8 @@
 """The policy without its safety net: the intervention cost, the PID multiplier, randomised
 training starts and head profiles, and the evaluation with the safety layer removed."""
 
+from pathlib import Path
+
 import pytest
 import torch
 from torchrl.envs import Compose, TransformedEnv
@@ -360,7 +362,7 @@ def test_batched_evaluation_matches_one_profile_at_a_time():
         assert torch.allclose(free[prof]["8 m"][0]["min_gap"], m8["min_gap"], atol=1e-4)
 
 
-def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up():
+def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path):
     """benchmarks/ring_jerk_by_time.py: the windows' shares add up to the report's whole-episode mean |jerk|
     (first step not counted), and the mean from a time on is that of those steps alone."""
     import importlib.util
@@ -384,3 +386,6 @@ def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up():
     late = (a[:, 1:] - a[:, :-1]).abs()[:, trace.time[0, 1:] >= 5.0] / 0.1
     assert out["after"] == pytest.approx(float(late.mean()), rel=1e-5)
     assert min(out["shares"]) > 0.0  # random commands: every window has jerk
+    png = Path(tmp_path) / "start.png"
+    mod.plot_starts({"random_steps": {"policy": trace, "idm": trace}}, png, seconds=5.0, engage_seconds=2.0)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
