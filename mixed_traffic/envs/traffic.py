@@ -276,8 +276,6 @@ class TrafficEnv(EnvBase):
 
         f = dict(dtype=torch.float32, device=self.device)
         self._cav = torch.tensor(sc.cav_indices, dtype=torch.long, device=self.device)
-        self._hdv_mask = torch.zeros(n, dtype=torch.bool, device=self.device)
-        self._hdv_mask[list(sc.hdv_indices)] = True
         self._a_lo, self._a_hi = sc.cav_accel_bounds
         self._head_lo, self._head_hi = sc.head_accel_bounds
         self._head_idm = params_as_tensors(IDMParams(), (), **f)

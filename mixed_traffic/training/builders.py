@@ -125,9 +125,6 @@ def _residual_idm(tcfg, env):
     r = tcfg.residual
     try:
         base = make_classic_policy(r.base, env, **dict(r.get("params") or {}))
-    except ValueError as e:
-        raise ValueError(f"transforms.residual: {e}") from None
-    try:
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0))
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
