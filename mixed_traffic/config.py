@@ -79,9 +79,11 @@ class SafetyLayerConfig:
     s_max: float | None = 40.0
     mode: str = "stopping"  # "stopping": collision-free under bounded braking; "one_step": the seed's rule
     # a head gap beyond s_max: "push" (full acceleration back), "hold" (keep it from growing) or
-    # "ramp" (hold, and push with a demand rising at ramp_jerk m/s^3 from the current acceleration)
+    # "ramp" (hold, and push with a demand rising at ramp_jerk m/s^3 from the current acceleration) or
+    # "recover" (close it at least at (gap - s_max) / recover_seconds)
     beyond_s_max: str = "push"
     ramp_jerk: float = 1.0
+    recover_seconds: float = 5.0
     # during the first hold_seconds of an episode a head gap beyond s_max is only held (0: push from the start)
     hold_seconds: float = 0.0
 

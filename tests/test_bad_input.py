@@ -120,6 +120,7 @@ def test_2_nan_action_is_refused_and_the_state_stays_finite():
     ("++env.overrides.v_init=nan", "env.overrides.v_init", "finite"),
     ("transforms.safety_layer.beyond_s_max=back", "transforms.safety_layer.beyond_s_max", "push"),
     ("transforms.safety_layer.hold_seconds=-5", "transforms.safety_layer.hold_seconds", ">= 0"),
+    ("transforms.safety_layer.recover_seconds=0", "transforms.safety_layer.recover_seconds", "> 0"),
 ])
 def test_2_config_values_fail_before_any_work(tmp_path, override, field, allowed):
     cfg = compose([*TINY, override])

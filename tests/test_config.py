@@ -71,10 +71,16 @@ def test_lagrangian_ppo_reproduces_the_seed_settings():
                "policy.apg.iterations": 100, "policy.apg.num_envs": 128, "trainer.total_frames": 50000}
     assert {k: OmegaConf.select(smooth, k) for k in changed} == changed
     from mixed_traffic.training.builders import make_transformed_env
-    from transforms import ResidualAction
+    from transforms import ResidualAction, SafetyLayer
 
-    residual = [t for t in make_transformed_env(smooth, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    chain = make_transformed_env(smooth, num_envs=1, seed=0).transform
+    residual = [t for t in chain if isinstance(t, ResidualAction)]
     assert [r.engage_seconds for r in residual] == [5.0]  # the setting reaches the transform
+    assert [(t.beyond_s_max, t.hold_seconds) for t in chain if isinstance(t, SafetyLayer)] == [("push", 15.0)]
+    recover = compose(["experiment=ring_lagrangian_ppo_smooth", "transforms.safety_layer.beyond_s_max=recover",
+                       "transforms.safety_layer.recover_seconds=2.5"])
+    assert [(t.beyond_s_max, t.recover_seconds) for t in make_transformed_env(recover, num_envs=1, seed=0).transform
+            if isinstance(t, SafetyLayer)] == [("recover", 2.5)]  # the option reaches the layer
     same = compose(["experiment=ring_lagrangian_ppo", *(f"{k}={'null' if v is None else v}" for k, v in changed.items())])
     assert OmegaConf.to_container(same, resolve=False) == OmegaConf.to_container(smooth, resolve=False)
     old = compose(["experiment=ring_lagrangian_ppo_no_apg"])

@@ -341,6 +341,47 @@ def test_ramp_beyond_s_max_closes_a_long_start_with_bounded_jerk():
         SafetyLayer(beyond_s_max="ramp", ramp_jerk=0.0)
 
 
+def test_recover_beyond_s_max_closes_the_excess_at_its_time_constant():
+    """``beyond_s_max="recover"``: beyond s_max the CAV must close on the head at least at
+    ``(gap - s_max) / recover_seconds``, a demand continuous in the state and met with the CAV's
+    bounded acceleration. A CAV 3 m beyond s_max already closing faster than that is left alone
+    (``"push"`` drives it at full throttle); from the 73 m start the gap is brought back inside
+    s_max, later than by "push" and sooner than by "hold" (only the head's own slowing down brings that
+    back); a short time constant is the push rule, a long one the hold rule."""
+    state = dict(gap=torch.tensor([[30.0]]), speed=torch.tensor([[22.54]]), leader_speed=torch.tensor([[20.21]]),
+                 head_gap=torch.tensor([[41.0]]), head_speed=torch.tensor([[20.21]]), low=-3.0, high=3.0, dt=0.1,
+                 s_min=5.0, s_max=38.0)
+    command = torch.tensor([[-0.3]])
+    assert float(safe_action(command, beyond_s_max="recover", recover_seconds=5.0, **state)) == pytest.approx(-0.3)
+    assert float(safe_action(command, beyond_s_max="push", **state)) == pytest.approx(3.0)
+    slow = dict(state, speed=torch.tensor([[20.6]]))  # closing at 0.39 m/s, the rule asks 3 / 5 = 0.6
+    assert float(safe_action(command, beyond_s_max="recover", recover_seconds=5.0, **slow)) == pytest.approx(
+        (0.6 - 0.39) / 0.1, abs=1e-3)
+
+    def rollout(**kw):
+        env = TransformedEnv(make_env("ring", batch_size=2, seed=0), SafetyLayer(s_min=5.0, s_max=38.0, **kw))
+        return env.rollout(400, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
+
+    def first_inside(td):
+        inside = td["next", "cav", "head_gap"][..., 0] <= 38.0 + 1e-3
+        return [int(row.nonzero()[0]) if row.any() else None for row in inside]
+
+    td, push, hold = rollout(beyond_s_max="recover", recover_seconds=5.0), rollout(), rollout(beyond_s_max="hold")
+    assert all(p < r for p, r in zip(first_inside(push), first_inside(td), strict=True))
+    assert all(h is None or h > r for h, r in zip(first_inside(hold), first_inside(td), strict=True))
+    h, vh = td["cav", "head_gap"][..., 0], td["cav", "head_speed"][..., 0]
+    v_next, accel = td["next", "cav", "speed"][..., 0], td["next", "cav", "accel"][..., 0]
+    met = (h > 38.0 + 1e-3) & (accel < 3.0 - 1e-3)  # beyond s_max, the demand within the CAV's bound
+    assert bool(met.any())
+    assert float((v_next - vh - (h - 38.0) / 5.0)[met].min()) >= -1e-3
+    assert not td["next", "collision"].any()
+    fast, slow = rollout(beyond_s_max="recover", recover_seconds=0.1), rollout(beyond_s_max="recover", recover_seconds=1e6)
+    assert torch.allclose(fast["next", "cav", "accel"], push["next", "cav", "accel"], atol=1e-4)
+    assert torch.allclose(slow["next", "cav", "accel"][:, :50], hold["next", "cav", "accel"][:, :50], atol=1e-3)
+    with pytest.raises(ValueError, match="recover_seconds=0.0 is invalid; allowed: > 0"):
+        SafetyLayer(beyond_s_max="recover", recover_seconds=0.0)
+
+
 def test_one_step_rule_is_not_enough_when_braking_is_bounded():
     """Why "stopping" is the default: the one-step rule reacts too late at -3 m/s^2."""
     def collisions(mode):

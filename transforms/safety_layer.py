@@ -49,10 +49,13 @@ maximum acceleration until the rule above is met again; ``"hold"`` only keeps th
 from growing (the rule with ``s_max`` raised to the current gap: the CAV at least keeps
 the head's speed) and leaves the closing to the command; ``"ramp"`` holds and also closes,
 but raises the demanded acceleration from the CAV's current one at ``ramp_jerk`` (m/s^3) at
-most, up to what ``"push"`` demands. ``s_max`` is a bound on how far a CAV may fall back,
-not a safety bound, so neither gives up a guarantee; both remove the full-throttle burst
-(and the jerk that follows it) from a long start, and ``"ramp"`` still brings back a
-command that does not close the gap itself.
+most, up to what ``"push"`` demands; ``"recover"`` demands that the excess ``h - s_max``
+shrink with the time constant ``recover_seconds`` (the CAV closes on the head at least at
+``(h - s_max) / recover_seconds``), a rule continuous in the state that meets the push rule at
+``s_max`` (``"push"`` is its limit at one step, ``"hold"`` at infinity). ``s_max`` is a bound on
+how far a CAV may fall back, not a safety bound, so none of them gives up a guarantee; they
+remove the full-throttle burst (and the jerk that follows it) from a long start, and
+``"ramp"`` and ``"recover"`` still bring back a command that does not close the gap itself.
 
 The guarantee is exact for the ``"euler"`` integration (the default of every preset);
 with ``"euler_explicit"`` / ``"ballistic"`` the same rule is a close approximation.
@@ -73,7 +76,7 @@ from transforms.specs import action_shaped_full, carry_to_next, parent_dt
 Tensor = torch.Tensor
 
 MODES = ("stopping", "one_step")
-BEYOND_S_MAX = ("push", "hold", "ramp")
+BEYOND_S_MAX = ("push", "hold", "ramp", "recover")
 
 
 # ----------------------------------------------------------------------------- pure math
@@ -146,7 +149,7 @@ def one_step_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: flo
 
 def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: float, dt: float,
                      mode: str = "stopping", accel_max: Tensor | float | None = None,
-                     beyond: str = "push") -> Tensor:
+                     beyond: str = "push", recover_seconds: float = 5.0) -> Tensor:
     """Smallest acceleration that keeps the gap to the head ``<= s_max``.
 
     ``"stopping"`` mode (mirror image of the s_min rule): after this step the CAV can
@@ -156,13 +159,16 @@ def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: 
     ``accel_max`` (or in ``"one_step"`` mode) only the next gap is predicted:
     ``h + (v_H - v') dt <= s_max`` (``"one_step"``: the original
     ``h + (v_H - v) dt - a dt^2 / 2 <= s_max``). With ``beyond="hold"`` a gap already
-    beyond ``s_max`` is only kept from growing (no room is demanded back).
+    beyond ``s_max`` is only kept from growing (no room is demanded back); with
+    ``beyond="recover"`` it is demanded back at the rate ``(h - s_max) / recover_seconds``.
     """
     if mode == "one_step":
         return 2.0 * (head_gap + (head_speed - v) * dt - s_max) / dt**2
     room = s_max - head_gap
     if beyond == "hold":
         room = room.clamp_min(0.0)
+    elif beyond == "recover":
+        room = torch.where(room >= 0, room, room * (dt / recover_seconds))
     if accel_max is None:
         w = room / dt
     else:
@@ -175,14 +181,16 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
                 head_gap: Tensor | None, head_speed: Tensor | None, low: Tensor | float, high: Tensor | float,
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
                 leader_brake: Tensor | float | None = None, beyond_s_max: str = "push",
-                accel: Tensor | None = None, ramp_jerk: float = 1.0, hold_mask: Tensor | None = None) -> Tensor:
+                accel: Tensor | None = None, ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
+                hold_mask: Tensor | None = None) -> Tensor:
     """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
 
     ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``;
-    ``beyond_s_max`` (``"push"`` / ``"hold"`` / ``"ramp"``, the last with the CAV's current
-    acceleration ``accel`` and ``ramp_jerk``): see the module docstring. ``hold_mask`` (bool,
-    broadcastable to ``action``) marks the entries where a head gap beyond ``s_max`` is only
-    held whatever ``beyond_s_max`` says (:class:`SafetyLayer`'s ``hold_seconds``).
+    ``beyond_s_max``: ``"push"``, ``"hold"``, ``"ramp"`` (with the CAV's current acceleration
+    ``accel`` and ``ramp_jerk``) or ``"recover"`` (with ``recover_seconds``); see the module
+    docstring. ``hold_mask`` (bool, broadcastable to ``action``) marks the entries where a head
+    gap beyond ``s_max`` is only held whatever ``beyond_s_max`` says (:class:`SafetyLayer`'s
+    ``hold_seconds``).
     """
     low = torch.as_tensor(low, dtype=action.dtype, device=action.device)
     high = torch.as_tensor(high, dtype=action.dtype, device=action.device)
@@ -198,7 +206,7 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
             a_lo = torch.maximum(held, torch.minimum(pushed, accel + ramp_jerk * dt))
         else:
             a_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
-                                    beyond=beyond_s_max)
+                                    beyond=beyond_s_max, recover_seconds=recover_seconds)
         if hold_mask is not None and beyond_s_max != "hold":
             held_lo = head_accel_lower(head_gap, speed, head_speed, s_max=s_max, dt=dt, mode=mode, accel_max=high,
                                        beyond="hold")
@@ -256,9 +264,11 @@ class SafetyLayer(Transform):
             module docstring) or ``"one_step"`` (the original rule, for reproduction).
         beyond_s_max: ``"push"`` (default: a head gap beyond ``s_max`` is closed at the
             maximum acceleration), ``"hold"`` (it is only kept from growing; the command
-            closes it) or ``"ramp"`` (held, and closed with a demand that rises from the
-            current acceleration at ``ramp_jerk``); ``"stopping"`` mode only.
+            closes it), ``"ramp"`` (held, and closed with a demand that rises from the
+            current acceleration at ``ramp_jerk``) or ``"recover"`` (closed at a rate of at least
+            the excess over ``recover_seconds``); ``"stopping"`` mode only.
         ramp_jerk: the ``"ramp"`` demand's rate of rise (m/s^3, > 0).
+        recover_seconds: the ``"recover"`` rule's time constant (s, > 0).
         hold_seconds: during the first ``hold_seconds`` of an episode (``time_key`` below that)
             a head gap beyond ``s_max`` is only held, whatever ``beyond_s_max`` says: a CAV
             that engages far behind the head closes the gap at its own pace, and the layer
@@ -294,7 +304,8 @@ class SafetyLayer(Transform):
 
     def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
                  mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
-                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, hold_seconds: float = 0.0,
+                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
+                 hold_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), action_key: NestedKey = "action",
                  cav_keys: dict[str, NestedKey] | None = None,
                  out_keys: Sequence[NestedKey] = (("safety", "clipped"), ("safety", "delta"))):
@@ -304,6 +315,8 @@ class SafetyLayer(Transform):
             raise ValueError(f"SafetyLayer: beyond_s_max={beyond_s_max!r} is invalid; allowed: {list(BEYOND_S_MAX)}")
         if not ramp_jerk > 0:
             raise ValueError(f"SafetyLayer: ramp_jerk={ramp_jerk!r} is invalid; allowed: > 0 (m/s^3)")
+        if not recover_seconds > 0:
+            raise ValueError(f"SafetyLayer: recover_seconds={recover_seconds!r} is invalid; allowed: > 0 (s)")
         if not hold_seconds >= 0:
             raise ValueError(f"SafetyLayer: hold_seconds={hold_seconds!r} is invalid; allowed: >= 0 (s)")
         if s_min is not None and not s_min > 0:
@@ -329,6 +342,7 @@ class SafetyLayer(Transform):
         super().__init__(in_keys=[], out_keys=list(out_keys), in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.s_min, self.s_max, self.mode, self.beyond_s_max = s_min, s_max, mode, beyond_s_max
         self.ramp_jerk, self.hold_seconds, self.time_key = float(ramp_jerk), float(hold_seconds), time_key
+        self.recover_seconds = float(recover_seconds)
         self._dt = dt
         self._leader_brake = leader_brake
         self.action_key = action_key
@@ -401,7 +415,7 @@ class SafetyLayer(Transform):
             head_speed=tensordict.get(k["head_speed"]) if need_head else None,
             low=low, high=high, dt=self.dt, s_min=self.s_min, s_max=self.s_max, mode=self.mode,
             leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
-            beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk,
+            beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk, recover_seconds=self.recover_seconds,
             accel=tensordict.get(k["accel"]) if need_head and self.beyond_s_max == "ramp" else None,
             hold_mask=self._hold_mask(tensordict) if need_head else None,
         )

@@ -63,7 +63,8 @@ def _safety_layer(tcfg, env):
 
     s = tcfg.safety_layer
     return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode, beyond_s_max=s.get("beyond_s_max", "push"),
-                       ramp_jerk=s.get("ramp_jerk", 1.0), hold_seconds=s.get("hold_seconds", 0.0))
+                       ramp_jerk=s.get("ramp_jerk", 1.0), recover_seconds=s.get("recover_seconds", 5.0),
+                       hold_seconds=s.get("hold_seconds", 0.0))
 
 
 def _residual_damper(tcfg, env):
