@@ -10,7 +10,8 @@ stopping, on the 313.65 m ring, human parameters spread +-10 %):
 - ``humans_30pct``: ``random_steps`` with the humans' parameters spread +-30 %.
 
 For each case the policy runs with its safety layer, without it (from the standard start
-and the close starts of ``eval.close_starts``), and IDM-as-CAV runs without a layer, all
+and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``) runs
+without a layer and, with ``--baselines-with-layer``, again behind the run's safety layer, all
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
 ``OUT/generalization.json`` and prints the table.
 
@@ -99,6 +100,8 @@ def main(argv=None) -> dict:
     p.add_argument("--cases", nargs="+", default=None, help="subset of the cases")
     p.add_argument("--baselines", nargs="+", default=["idm"],
                    help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6')")
+    p.add_argument("--baselines-with-layer", action="store_true",
+                   help="run every baseline again behind the run's safety layer (rows '<name> + layer')")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
 
@@ -125,6 +128,11 @@ def main(argv=None) -> dict:
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             results[name][spec] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0], prof)
+            if a.baselines_with_layer:
+                with open_dict(base_cfg):
+                    base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
+                results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0],
+                                                       prof)
         print(name, json.dumps(results[name]["policy"]), flush=True)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -143,10 +151,14 @@ def main(argv=None) -> dict:
                          f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {q['steady_rmse']:.3f} | "
                          f"{q['jerk']:.4f} | {q['return']:.0f} | – |")
         for spec in a.baselines:
-            i_ = r[spec]
-            lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, no layer | {i_['collisions']} | {i_['min_gap']:.2f} "
-                         f"| – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | {i_['jerk']:.4f} | "
-                         f"{i_['return']:.0f} | – |")
+            for key, label in ((spec, "no layer"), (f"{spec} + layer", "+ layer")):
+                if key not in r:
+                    continue
+                i_ = r[key]
+                iv = f"{i_['intervention_rate']:.3f}" if key != spec else "–"
+                lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, {label} | {i_['collisions']} | "
+                             f"{i_['min_gap']:.2f} | – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | "
+                             f"{i_['jerk']:.4f} | {i_['return']:.0f} | {iv} |")
     md = "\n".join(lines) + "\n"
     (out / "generalization.md").write_text(md)
     print(md)

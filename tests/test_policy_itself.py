@@ -389,3 +389,32 @@ def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path)
     png = Path(tmp_path) / "start.png"
     mod.plot_starts({"random_steps": {"policy": trace, "idm": trace}}, png, seconds=5.0, engage_seconds=2.0)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path):
+    """benchmarks/ring_generalization.py --baselines-with-layer: each baseline runs again behind the
+    trained run's safety layer on the same episodes; the layer's work shows in its row (IDM-as-CAV
+    starts 73.4 m behind a 20-28 m/s head, beyond s_max) and not in the layer-free one."""
+    import importlib.util
+    import json
+    import os
+
+    from mixed_traffic.training import train
+
+    run = tmp_path / "run"
+    train(compose(["experiment=ring_lagrangian_ppo_scratch", "trainer.total_frames=32", "trainer.num_envs=8",
+                   "trainer.rollout_len=4", "trainer.epochs=1", "trainer.minibatch_size=16",
+                   "trainer.progress=false", "env.episode_seconds=1.0"]), out_dir=run)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("ring_generalization",
+                                                  os.path.join(root, "benchmarks", "ring_generalization.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "gen"
+    res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
+                    "--baselines", "idm", "--baselines-with-layer", "--out", str(out)])
+    rows = res["fast_steps"]
+    assert rows["idm"]["intervention_rate"] == 0.0 and rows["idm + layer"]["intervention_rate"] > 0.0
+    assert rows["idm + layer"]["max_head_gap"] < rows["idm"]["max_head_gap"]
+    assert "idm + layer" in json.loads((out / "generalization.json").read_text())["results"]["fast_steps"]
+    assert "| fast_steps | IDM, + layer |" in (out / "generalization.md").read_text()
