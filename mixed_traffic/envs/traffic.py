@@ -478,11 +478,6 @@ class TrafficEnv(EnvBase):
                 self._share_starts(mask)
             self.acc = self.acc.clone()
             self.acc[idx] = 0.0
-            if sc.reset_accel == "model":
-                model = self._drivers_accel(self._gaps(self.pos), self.vel, torch.roll(self.vel, 1, dims=-1),
-                                            noise=False)
-                model[:, self._cav] = model[:, self._cav].clamp(self._a_lo, self._a_hi)
-                self.acc[idx] = model[idx].to(self.acc.dtype)
             self.head_hist[idx] = 0.0
             self.head_sum[idx] = 0.0
             self._push_head_speed_rows(idx)
@@ -492,6 +487,10 @@ class TrafficEnv(EnvBase):
             self._override = self._override.clone()
             self._override[idx] = 0.0
         gap = self._gaps(self.pos)
+        if k and sc.reset_accel == "model":
+            model = self._drivers_accel(gap, self.vel, torch.roll(self.vel, 1, dims=-1), noise=False)
+            model[:, self._cav] = model[:, self._cav].clamp(self._a_lo, self._a_hi)
+            self.acc[idx] = model[idx].to(self.acc.dtype)
         v_eq = self._v_eq()
         j, _ = stage_terms(sc, self.vel, gap, self.acc[:, self._cav], v_eq, self.v_ref)
         out = self._output(gap, v_eq, j)
