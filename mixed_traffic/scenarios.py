@@ -91,6 +91,10 @@ class TrafficScenario:
     profile_kwargs: dict = field(default_factory=lambda: {"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
     head_accel_bounds: tuple[float, float] = (-3.0, 2.0)
     cav_accel_bounds: tuple[float, float] = (-3.0, 3.0)
+    # the hardest braking (m/s^2, > 0) a CAV can execute, for the safety layer alone: the policy and the
+    # controllers command within cav_accel_bounds, the layer may brake down to -cav_emergency_decel when
+    # the gap demands it, and its worst case assumes the CAV brakes that hard (None: -cav_accel_bounds[0])
+    cav_emergency_decel: float | None = None
     observation: str = "seed"  # "seed": [v_i/30, p_i/L]; "relative": per-CAV physical features; "wave"
     head: bool = True  # a scripted head at index 0 (False: ring only, every car a human or a CAV)
     accel_noise: float = 0.0  # std (m/s^2) of the per-step Gaussian noise on human accelerations
@@ -128,6 +132,15 @@ class TrafficScenario:
     @property
     def max_steps(self) -> int:
         return int(round(self.episode_seconds / self.dt))
+
+    @property
+    def cav_exec_bounds(self) -> tuple[float, float]:
+        """The CAV accelerations the vehicle executes: ``cav_accel_bounds`` widened down to
+        ``-cav_emergency_decel`` (what the safety layer may brake at; the action range is unchanged)."""
+        lo, hi = self.cav_accel_bounds
+        if self.cav_emergency_decel is None:
+            return (float(lo), float(hi))
+        return (min(float(lo), -float(self.cav_emergency_decel)), float(hi))
 
     @property
     def n_cav(self) -> int:
@@ -298,6 +311,10 @@ class TrafficScenario:
             lo, hi = getattr(self, name)
             if not lo < 0 < hi:
                 bad(name, (lo, hi), "(low, high) with low < 0 < high")
+        if self.cav_emergency_decel is not None and not (
+                math.isfinite(self.cav_emergency_decel) and self.cav_emergency_decel >= -self.cav_accel_bounds[0]):
+            bad("cav_emergency_decel", self.cav_emergency_decel,
+                f"None or a finite braking (m/s^2) >= -cav_accel_bounds[0] = {-self.cav_accel_bounds[0]:g}")
         if self.integration not in ("euler", "euler_explicit", "ballistic"):
             bad("integration", self.integration, "'euler', 'euler_explicit' or 'ballistic'")
         if self.reset_accel not in ("zero", "model"):

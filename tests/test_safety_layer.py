@@ -185,6 +185,71 @@ def test_invalid_arguments_name_the_field():
         SafetyLayer(leader_brake=-1.0)
     with pytest.raises(ValueError, match="dt"):
         SafetyLayer(dt=0.0)
+    with pytest.raises(ValueError, match="ego_brake"):
+        SafetyLayer(ego_brake=0.0)
+
+
+@PROP
+@given(v=speeds, vl=speeds, e=st.floats(3.0, 9.0), bl=brakes, dt=dts, margin=st.floats(0.0, 20.0),
+       a_req=st.floats(-20.0, 20.0), a_lead=st.floats(0.0, 1.0))
+def test_emergency_braking_keeps_the_invariant_and_goes_below_low_only_for_s_min(v, vl, e, bl, dt, margin,
+                                                                                     a_req, a_lead):
+    # the action range is [-3, 3]; the layer may brake at up to e (>= 3) and assumes the CAV does
+    s_min, b = 2.0, min(e, bl)
+    gap = s_min + max(0.0, brute_braking_distance(v, b, dt) - brute_braking_distance(vl, bl, dt)) + margin
+    kw = dict(gap=t(gap), speed=t(v), leader_speed=t(vl), head_gap=None, head_speed=None, low=-3.0, high=3.0,
+              dt=dt, s_min=s_min, s_max=None, leader_brake=bl)
+    a = float(safe_action(t(a_req), ego_brake=e, **kw))
+    assert -e - 1e-12 <= a <= 3.0 + 1e-12
+    # the command within the action range, lowered to the s_min bound that assumes braking at e,
+    # never below -e: the only way below -3 is that bound
+    a_hi = float(safe_accel_upper(t(gap), t(v), t(vl), s_min=s_min, dt=dt, brake=e, leader_brake=bl))
+    assert a == pytest.approx(max(min(max(a_req, -3.0), 3.0, a_hi), -e), abs=1e-9)
+    a_l = -bl + a_lead * (3.0 + bl)
+    v1, vl1 = max(v + a * dt, 0.0), max(vl + a_l * dt, 0.0)
+    gap1 = gap + (vl1 - v1) * dt
+    assert gap1 >= s_min - 1e-7
+    assert brute_min_gap(gap1, v1, vl1, dt, e, bl) >= s_min - 1e-7
+
+
+def _full_throttle(env):
+    high = env.action_spec.high.clone()
+    return lambda td: td.set("action", high.clone())
+
+
+def test_emergency_braking_through_the_env():
+    # the env executes the layer's emergency braking; the action range (and a raw command) stays [-3, 3]
+    base = make_env("ring_wave", batch_size=2, seed=0, cav_emergency_decel=9.0)
+    assert base.action_spec.space.low.min() == -3.0
+    td = base.reset()
+    v0 = td["cav", "speed"].clone()
+    td = base.step(td.set("action", torch.full_like(v0, -8.0)))
+    assert torch.allclose(td["next", "cav", "speed"], (v0 - 0.8).clamp_min(0.0), atol=1e-5)
+    plain = make_env("ring_wave", batch_size=2, seed=0)
+    td = plain.reset()
+    td = plain.step(td.set("action", torch.full_like(v0, -8.0)))
+    assert torch.allclose(td["next", "cav", "speed"], (v0 - 0.3).clamp_min(0.0), atol=1e-5)
+    # a CAV that always asks for full throttle behind humans: the layer reads the scenario's braking,
+    # lets it follow closer than with the action range's 3 m/s^2, and it never collides
+    gaps = {}
+    for decel in (None, 9.0):
+        env = TransformedEnv(make_env("ring_wave", batch_size=8, seed=1, cav_emergency_decel=decel),
+                             SafetyLayer(s_min=2.0, s_max=None))
+        ro = env.rollout(1500, _full_throttle(env), break_when_any_done=False)
+        assert not ro["next", "collision"].any()
+        assert ro["next", "cav", "gap"].min() >= 2.0 - 1e-3
+        assert ro["next", "cav", "accel"].min() >= (-9.0 if decel else -3.0) - 1e-4
+        gaps[decel] = float(ro["next", "cav", "gap"][:, 500:].mean())
+    assert gaps[9.0] < gaps[None] - 0.5
+
+
+def test_emergency_braking_field_is_checked():
+    from mixed_traffic.scenarios import get_scenario
+
+    with pytest.raises(ValueError, match="cav_emergency_decel"):
+        get_scenario("ring_wave", cav_emergency_decel=2.0)  # below the action range's 3 m/s^2
+    assert get_scenario("ring_wave", cav_emergency_decel=9.0).cav_exec_bounds == (-9.0, 3.0)
+    assert get_scenario("ring_wave").cav_exec_bounds == (-3.0, 3.0)
 
 
 # ----------------------------------------------------------------------------- through the env

@@ -145,3 +145,18 @@ def test_all_human_sumo_ring_forms_waves_that_follower_stopper_reduces():
         out[name] = float(m["speed_std"].mean())
     assert out["human"] >= 2.0
     assert out["follower_stopper"] < out["human"]
+
+
+def test_emergency_braking_is_executed_in_sumo_as_in_torch():
+    """``cav_emergency_decel``: SUMO executes the safety layer's braking below the action range, as
+    the torch backend does; without it a command below the range is clipped to it."""
+    for decel, expected in ((9.0, 0.8), (None, 0.3)):
+        su = make_env("ring_wave", backend="sumo", seed=0, cav_emergency_decel=decel)
+        try:
+            assert su.action_spec.space.low.min() == -3.0
+            td = su.reset()
+            v0 = float(td["cav", "speed"][0, 0])
+            nxt = su.step(td.set("action", torch.full((1, 1), -8.0)))["next"]
+            assert float(nxt["cav", "speed"][0, 0]) == pytest.approx(max(v0 - expected, 0.0), abs=1e-6)
+        finally:
+            su.close()

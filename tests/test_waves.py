@@ -462,12 +462,29 @@ def test_wave_experiments_pass_check_env_specs():
         check_env_specs(make_transformed_env(compose([f"experiment={exp}"]), num_envs=2, seed=0))
 
 
+def test_wave_blend_layer_brakes_as_hard_as_a_human_and_commands_stay_in_range():
+    """ring_wave_blend: the scenario's emergency braking reaches the safety layer (its worst case and its
+    floor), the action range the policy and the dampers command in is unchanged."""
+    from mixed_traffic.training.builders import make_transformed_env
+
+    env = make_transformed_env(compose(["experiment=ring_wave_blend"]), num_envs=2, seed=0)
+    sc = env.base_env.scenario
+    assert sc.cav_emergency_decel == 9.0 and sc.cav_exec_bounds == (-9.0, 3.0)
+    assert env.base_env.action_spec.space.low.min() == -3.0
+    layer = next(t for t in env.transform if type(t).__name__ == "SafetyLayer")
+    assert layer._ego_brake_value(torch.tensor([-3.0])).tolist() == [9.0]
+    plain = make_transformed_env(compose(["experiment=ring_wave_cem"]), num_envs=2, seed=0)
+    layer = next(t for t in plain.transform if type(t).__name__ == "SafetyLayer")
+    assert layer._ego_brake_value(torch.tensor([-3.0])).tolist() == [3.0]
+
+
 def test_classical_with_layer_adds_each_damper_behind_the_safety_layer():
     """eval.wave.classical_with_layer: every damper (not the all-human ring) again, behind the
     run's safety layer; a set point far above the ring's speed is clipped there, not without it."""
     from mixed_traffic.evaluation.waves import evaluate_waves
 
-    cfg = compose(["experiment=ring_wave_blend", "eval.wave.episodes=2", "eval.wave.episode_seconds=30",
+    cfg = compose(["experiment=ring_wave_blend", "env.overrides.cav_emergency_decel=null", "eval.wave.episodes=2",
+                   "eval.wave.episode_seconds=30",
                    "eval.wave.warmup_seconds=1", "eval.wave.ring_lengths=[240]", "eval.wave.classical_with_layer=true"])
     rep, _ = evaluate_waves(cfg, controllers=["human", "follower_stopper:U=15"])
     ctrl = rep["rings"]["240"]["controllers"]

@@ -10,9 +10,11 @@ Two constraints act on the commanded acceleration ``a`` of every CAV:
 Modes
 -----
 ``mode="stopping"`` (default) guarantees no collision when the executed
-acceleration is bounded (the env clips the action to ``cav_accel_bounds``). It keeps
+acceleration is bounded (the env clips the action to ``cav_accel_bounds``, widened down to
+``-cav_emergency_decel`` when the scenario sets it). It keeps
 the post-step state inside the *safe set*: if from now on the leader brakes as hard
-as it can (``leader_brake``) and the CAV brakes at ``b = min(ego_brake, leader_brake)``,
+as it can (``leader_brake``) and the CAV brakes at ``b = min(ego_brake, leader_brake)``
+(``ego_brake``: the action range's ``-low``, or the emergency braking the layer alone may use),
 every future gap stays ``>= s_min``. The prediction uses the env's discrete update
 (``v' = max(v + a dt, 0)``, ``x' = x + v' dt``), so the guarantee holds exactly in
 discrete time, not only in the continuous-time limit:
@@ -63,6 +65,7 @@ with ``"euler_explicit"`` / ``"ballistic"`` the same rule is a close approximati
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -182,9 +185,12 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
                 leader_brake: Tensor | float | None = None, beyond_s_max: str = "push",
                 accel: Tensor | None = None, ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
-                hold_mask: Tensor | None = None) -> Tensor:
+                hold_mask: Tensor | None = None, ego_brake: Tensor | float | None = None) -> Tensor:
     """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
 
+    ``ego_brake`` (> 0, m/s^2, at least ``-low``) is the hardest braking the CAV can execute,
+    defaulting to ``-low``: the s_min bound assumes the CAV brakes that hard from the next step
+    on, and only it may take the command below ``low`` (down to ``-ego_brake``);
     ``leader_brake`` (> 0, m/s^2) defaults to the CAV's own braking bound ``-low``;
     ``beyond_s_max``: ``"push"``, ``"hold"``, ``"ramp"`` (with the CAV's current acceleration
     ``accel`` and ``ramp_jerk``) or ``"recover"`` (with ``recover_seconds``); see the module
@@ -212,14 +218,15 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
                                        beyond="hold")
             a_lo = torch.where(hold_mask, held_lo, a_lo)
         a = torch.maximum(a, torch.minimum(a_lo, high))
+    brake = -low if ego_brake is None else torch.maximum(torch.as_tensor(ego_brake, dtype=low.dtype, device=low.device), -low)
     if s_min is not None:
         if mode == "one_step":
             a_hi = one_step_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt)
         else:
             lb = -low if leader_brake is None else leader_brake
-            a_hi = safe_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt, brake=-low, leader_brake=lb)
+            a_hi = safe_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt, brake=brake, leader_brake=lb)
         a = torch.minimum(a, a_hi)
-    return torch.minimum(torch.maximum(a, low), high)
+    return torch.minimum(torch.maximum(a, -brake), high)
 
 
 def scenario_leader_brake(scenario) -> list[float]:
@@ -277,6 +284,11 @@ class SafetyLayer(Transform):
         leader_brake: braking bound (> 0, m/s^2) of each CAV's leader, a float or one
             value per CAV; ``None`` reads it from the parent's ``scenario``
             (:func:`scenario_leader_brake`), else uses the CAV's own bound.
+        ego_brake: the hardest braking (> 0, m/s^2) the CAV can execute, at least the action
+            range's ``-low``: the s_min bound assumes the CAV brakes that hard, and only it may
+            take the executed command below ``low``. ``None`` reads the parent scenario's
+            ``cav_emergency_decel`` and falls back to ``-low`` (the action range is all the
+            layer may use).
         action_key: the action entry (default ``"action"``).
         cav_keys: where to read the CAV state (defaults follow the env key contract).
         out_keys: the two keys written into ``"next"`` (clipped flag, delta).
@@ -304,7 +316,7 @@ class SafetyLayer(Transform):
 
     def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
                  mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
-                 beyond_s_max: str = "push", ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
+                 ego_brake: float | None = None, beyond_s_max: str = "push", ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
                  hold_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), action_key: NestedKey = "action",
                  cav_keys: dict[str, NestedKey] | None = None,
@@ -331,6 +343,8 @@ class SafetyLayer(Transform):
             lb = torch.as_tensor(leader_brake, dtype=torch.float64)
             if not bool((lb > 0).all()):
                 raise ValueError(f"SafetyLayer: leader_brake={leader_brake!r} is invalid; allowed: > 0 (m/s^2) or None")
+        if ego_brake is not None and not (math.isfinite(ego_brake) and ego_brake > 0):
+            raise ValueError(f"SafetyLayer: ego_brake={ego_brake!r} is invalid; allowed: > 0 (m/s^2) or None")
         keys = dict(self.DEFAULT_CAV_KEYS)
         if cav_keys:
             unknown = set(cav_keys) - set(keys)
@@ -345,6 +359,7 @@ class SafetyLayer(Transform):
         self.recover_seconds = float(recover_seconds)
         self._dt = dt
         self._leader_brake = leader_brake
+        self._ego_brake = None if ego_brake is None else float(ego_brake)
         self.action_key = action_key
         self.cav_keys = keys
         self.clipped_key, self.delta_key = out_keys
@@ -395,6 +410,16 @@ class SafetyLayer(Transform):
             self.__dict__["_lb_cache"] = lb
         return lb.to(low)
 
+    def _ego_brake_value(self, low: Tensor) -> Tensor:
+        """``ego_brake``, else the scenario's ``cav_emergency_decel``, else ``-low``; never below ``-low``."""
+        eb = self._ego_brake
+        if eb is None:
+            scenario = getattr(self.parent, "scenario", None) if self.parent is not None else None
+            eb = getattr(scenario, "cav_emergency_decel", None)
+        if eb is None:
+            return -low
+        return torch.clamp_min(torch.full_like(low, float(eb)), 0.0).maximum(-low)
+
     # -------------------------------------------------------------- transform API
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key, None)
@@ -417,7 +442,7 @@ class SafetyLayer(Transform):
             leader_brake=self._leader_brake_tensor(low) if self.mode == "stopping" else None,
             beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk, recover_seconds=self.recover_seconds,
             accel=tensordict.get(k["accel"]) if need_head and self.beyond_s_max == "ramp" else None,
-            hold_mask=self._hold_mask(tensordict) if need_head else None,
+            hold_mask=self._hold_mask(tensordict) if need_head else None, ego_brake=self._ego_brake_value(low),
         )
         commanded = torch.minimum(torch.maximum(action, low), high)
         if self.active_rows is not None:

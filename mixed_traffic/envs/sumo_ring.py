@@ -367,7 +367,7 @@ class SumoRingEnv(EnvBase):
         head = dict(id="head", carFollowModel="IDM", accel=hh, decel=-hl, emergencyDecel=-hl, sigma=0,
                     tau=idm.T, minGap=idm.s0, delta=idm.delta, stepping=sc.dt, maxSpeed=idm.v0, **common)
         kp = KraussParams()  # the torch backend's speed mode 95 models this vType
-        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, kp.emergency_decel),
+        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, kp.emergency_decel, -sc.cav_exec_bounds[0]),
                    sigma=0, tau=kp.tau, minGap=kp.min_gap, maxSpeed=LANE_SPEED, **common)
         out = []
         for i, vid in enumerate(self._ids):
@@ -537,7 +537,7 @@ class SumoRingEnv(EnvBase):
                              "(batch, n_cav) accelerations in m/s^2")
         if self._closed_sumo:
             raise RuntimeError("SumoRingEnv: the SUMO simulation is not running (closed or failed); call reset()")
-        lo, hi = sc.cav_accel_bounds
+        lo, hi = sc.cav_exec_bounds  # the action range, widened by the safety layer's emergency braking
         a = action.detach().double().cpu().numpy()[0].clip(lo, hi)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action: {a.tolist()} is invalid; allowed: finite accelerations in [{lo}, {hi}] m/s^2")

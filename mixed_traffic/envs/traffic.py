@@ -277,6 +277,7 @@ class TrafficEnv(EnvBase):
         f = dict(dtype=torch.float32, device=self.device)
         self._cav = torch.tensor(sc.cav_indices, dtype=torch.long, device=self.device)
         self._a_lo, self._a_hi = sc.cav_accel_bounds
+        self._exec_lo = sc.cav_exec_bounds[0]  # below _a_lo only for the safety layer's emergency braking
         self._head_lo, self._head_hi = sc.head_accel_bounds
         self._head_idm = params_as_tensors(IDMParams(), (), **f)
         self._hdv_base = sc.hdv_defaults()
@@ -574,7 +575,7 @@ class TrafficEnv(EnvBase):
         gap = self._gaps(pos)
         v_lead = torch.roll(vel, 1, dims=-1)
         acc = self._drivers_accel(gap, vel, v_lead, noise=True)
-        acc[:, self._cav] = action.to(acc.dtype).clamp(self._a_lo, self._a_hi)
+        acc[:, self._cav] = action.to(acc.dtype).clamp(self._exec_lo, self._a_hi)
         if sc.sumo_safety:
             acc[:, self._cav], over = self._speed_mode_95(acc[:, self._cav], gap, vel)
             self._override = over.to(acc.dtype)
