@@ -19,6 +19,7 @@ from transforms.safety_layer import (
     min_future_gap,
     safe_accel_upper,
     safe_action,
+    scenario_leader_brake,
 )
 
 D64 = torch.float64
@@ -241,6 +242,13 @@ def test_emergency_braking_through_the_env():
         assert ro["next", "cav", "accel"].min() >= (-9.0 if decel else -3.0) - 1e-4
         gaps[decel] = float(ro["next", "cav", "gap"][:, 500:].mean())
     assert gaps[9.0] < gaps[None] - 0.5
+    # two CAVs in a row: the follower's layer assumes its CAV leader may brake as hard as that one's layer can
+    sc = make_env("ring_wave", batch_size=1, seed=0, cav_indices=[0, 1], cav_emergency_decel=9.0).scenario
+    assert scenario_leader_brake(sc)[1] == 9.0
+    env = TransformedEnv(make_env("ring_wave", batch_size=8, seed=2, cav_indices=[0, 1], cav_emergency_decel=9.0),
+                         SafetyLayer(s_min=2.0, s_max=None))
+    ro = env.rollout(1500, _full_throttle(env), break_when_any_done=False)
+    assert not ro["next", "collision"].any() and ro["next", "cav", "gap"].min() >= 2.0 - 1e-3
 
 
 def test_emergency_braking_field_is_checked():

@@ -233,7 +233,8 @@ def scenario_leader_brake(scenario) -> list[float]:
     """Braking bound (> 0) of each CAV's leader in a :class:`TrafficScenario`.
 
     Vehicles are ordered head first, so CAV ``i`` follows vehicle ``i - 1`` (on a ring,
-    CAV 0 follows the last vehicle): the head (``head_accel_bounds``), another CAV (``cav_accel_bounds``) or a human driver (the
+    CAV 0 follows the last vehicle): the head (``head_accel_bounds``), another CAV (``cav_accel_bounds``, widened to
+    ``-cav_emergency_decel`` when set) or a human driver (the
     car-following model's ``a_min``, widened by ``hdv_param_noise``).
     """
     out = []
@@ -242,8 +243,8 @@ def scenario_leader_brake(scenario) -> list[float]:
         lead = (i - 1) % scenario.n_vehicles
         if lead == 0 and head:
             out.append(-float(scenario.head_accel_bounds[0]))
-        elif lead in scenario.cav_indices:
-            out.append(-float(scenario.cav_accel_bounds[0]))
+        elif lead in scenario.cav_indices:  # its own layer may brake it down to the emergency bound
+            out.append(-float(getattr(scenario, "cav_exec_bounds", scenario.cav_accel_bounds)[0]))
         else:
             a_min = float(scenario.hdv_defaults().a_min)
             out.append(-a_min * (1.0 + float(scenario.hdv_param_noise)))
