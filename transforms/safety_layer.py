@@ -412,14 +412,17 @@ class SafetyLayer(Transform):
         return lb.to(low)
 
     def _ego_brake_value(self, low: Tensor) -> Tensor:
-        """``ego_brake``, else the scenario's ``cav_emergency_decel``, else ``-low``; never below ``-low``."""
-        eb = self._ego_brake
+        """``ego_brake``, else the scenario's ``cav_emergency_decel``, else ``-low``; never below ``-low``
+        (looked up once, like the leader's bound)."""
+        eb = self.__dict__.get("_eb_cache")
         if eb is None:
-            scenario = getattr(self.parent, "scenario", None) if self.parent is not None else None
-            eb = getattr(scenario, "cav_emergency_decel", None)
-        if eb is None:
-            return -low
-        return torch.clamp_min(torch.full_like(low, float(eb)), 0.0).maximum(-low)
+            value = self._ego_brake
+            if value is None:
+                scenario = getattr(self.parent, "scenario", None) if self.parent is not None else None
+                value = getattr(scenario, "cav_emergency_decel", None)
+            eb = -low if value is None else torch.full_like(low, float(value)).maximum(-low)
+            self.__dict__["_eb_cache"] = eb
+        return eb.to(low)
 
     # -------------------------------------------------------------- transform API
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:

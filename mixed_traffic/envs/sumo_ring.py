@@ -367,7 +367,7 @@ class SumoRingEnv(EnvBase):
         head = dict(id="head", carFollowModel="IDM", accel=hh, decel=-hl, emergencyDecel=-hl, sigma=0,
                     tau=idm.T, minGap=idm.s0, delta=idm.delta, stepping=sc.dt, maxSpeed=idm.v0, **common)
         kp = KraussParams()  # the torch backend's speed mode 95 models this vType
-        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(-cl, kp.emergency_decel, -sc.cav_exec_bounds[0]),
+        cav = dict(id="cav", carFollowModel="Krauss", accel=ch, decel=-cl, emergencyDecel=max(kp.emergency_decel, -sc.cav_exec_bounds[0]),
                    sigma=0, tau=kp.tau, minGap=kp.min_gap, maxSpeed=LANE_SPEED, **common)
         out = []
         for i, vid in enumerate(self._ids):
