@@ -136,6 +136,16 @@ def abs_jerk(accel: torch.Tensor, valid: torch.Tensor, dt: float) -> tuple[torch
     return jerk, jvalid
 
 
+def steady_samples(head_accel: torch.Tensor, after: torch.Tensor, settle_steps: int) -> torch.Tensor:
+    """``[episodes, T]`` mask of the steady-state samples: ``after`` and the head's acceleration below
+    0.05 m/s^2 for the last ``settle_steps`` steps (the samples ``speed_rmse_steady`` counts)."""
+    still = head_accel.abs() < 0.05
+    # length of the current run of "still" steps: the index less that of the last step that was not still
+    idx = torch.arange(still.shape[1]).expand_as(still)
+    last_break = torch.where(~still, idx, torch.full_like(idx, -1)).cummax(1).values
+    return after & ((idx - last_break) >= settle_steps)
+
+
 def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float, warmup: float,
                     settle: float) -> tuple[dict[str, torch.Tensor], Trace]:
     """Per-episode metrics of a ``[episodes, T]`` rollout (see the module docstring)."""
@@ -165,15 +175,7 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     out["time_outside_total"] = (outside & valid).sum(1).float() * dt
     err2 = (v - vh).pow(2)
     out["speed_rmse"] = masked_mean(err2, after).sqrt()
-    # steady state: head acceleration ~0 for `settle` seconds
-    still = (a_head.abs() < 0.05).long()
-    run = torch.zeros_like(still)
-    n_settle = int(round(settle / dt))
-    # length of the current run of "still" steps (cumulative with reset), vectorised via cummax trick
-    idx = torch.arange(still.shape[1]).expand_as(still)
-    last_break = torch.where(still == 0, idx, torch.full_like(idx, -1)).cummax(1).values
-    run = idx - last_break
-    steady = after & (run >= n_settle)
+    steady = steady_samples(a_head, after, settle_steps=int(round(settle / dt)))
     has_steady = steady.sum(1) > 0
     out["speed_rmse_steady"] = torch.where(has_steady, masked_mean(err2, steady).sqrt(), out["speed_rmse"])
     out["mean_abs_accel"] = masked_mean(a.abs(), valid)

@@ -1,0 +1,118 @@
+"""A ring policy's jerk next to IDM-as-CAV's and the least jerk a clairvoyant CAV could have on the same episodes.
+
+For every case (the held-out cases of ``ring_generalization.py`` by default) this runs, on the same
+episodes (evaluation seed 2000), the policy without its layer and with it, and IDM-as-CAV without a
+layer (the reference of the jerk bar), then solves per episode the least whole-episode mean
+|jerk| of any command sequence that knows the head's future
+(:func:`mixed_traffic.evaluation.oracle.least_jerk`):
+
+- ``band``: the gap in ``[s_min, s_max]`` after the warm-up (the evaluation's 5-40 m), above 0.05 m before;
+- ``band + rmse (l1)``: also mean |v - v_head| <= ``eval.rmse_bar`` on the steady samples, a lower
+  bound of the least jerk under the steady-RMSE bar;
+- ``band + rmse (linf)``: |v - v_head| <= ``eval.rmse_bar`` on every steady sample, a sequence that
+  meets both bars (an upper bound of that least jerk).
+
+The gap between a causal controller and the clairvoyant figure is what not knowing the head's
+future costs; a bar that even the clairvoyant figure misses cannot be met by any controller.
+Writes ``OUT/jerk_oracle.json`` and ``OUT/jerk_oracle.md`` and prints the table::
+
+    python benchmarks/ring_jerk_oracle.py --checkpoint outputs/results/ring_eng5_seed0 \\
+        --out outputs/results/ring_eng5_seed0/jerk_oracle
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+
+def per_episode_jerk(trace, dt: float) -> list[float]:
+    from mixed_traffic.evaluation.harness import abs_jerk
+
+    jerk, valid = abs_jerk(trace.cav_accel, trace.valid, dt)
+    return ((jerk * valid).sum(1) / valid.sum(1).clamp_min(1)).tolist()
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--checkpoint", required=True, help="final.pt or a run directory")
+    p.add_argument("--episodes", type=int, default=4)
+    p.add_argument("--seconds", type=float, default=200.0)
+    p.add_argument("--seed", type=int, default=2000)
+    p.add_argument("--cases", nargs="+", default=None, help="subset of ring_generalization's cases")
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+
+    import torch
+    from omegaconf import open_dict
+    from ring_generalization import case_config, cases
+
+    from mixed_traffic.evaluation.harness import eval_scenario, evaluate
+    from mixed_traffic.evaluation.oracle import least_jerk_of_trace, steady_mask
+    from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
+
+    torch.set_num_threads(1)
+    run_cfg, state = checkpoint_config(a.checkpoint)
+    factory = policy_factory_from_state(run_cfg, state)
+    all_cases = cases(a.seconds)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name in a.cases or list(all_cases):
+        case = all_cases[name]
+        prof = case["profile"]
+        traces = {}
+        for label, chain, fac in (("policy + layer", None, factory), ("policy, no layer", "no_layer", factory),
+                                  ("IDM-as-CAV", ["non_negative_reward"], classic_factory("idm"))):
+            cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+            with open_dict(cfg):
+                cfg.eval.without_layer = False
+                if chain == "no_layer":
+                    cfg.transforms.chain = [t for t in cfg.transforms.chain if t != "safety_layer"]
+                elif chain is not None:
+                    cfg.transforms.chain = chain
+            traces[label] = evaluate(cfg, policy_factory=fac)[1][prof]
+        e = cfg.eval
+        dt = float(traces["IDM-as-CAV"].time[0, 0])
+        lo, hi = eval_scenario(cfg, prof).cav_accel_bounds
+        steady = steady_mask(traces["IDM-as-CAV"], dt=dt, warmup=e.warmup_seconds, settle=e.settle_seconds)
+        row = {label: per_episode_jerk(tr, dt) for label, tr in traces.items()}
+        for label, kw in (("clairvoyant: band", {}),
+                          ("clairvoyant: band + rmse (l1)", {"steady": steady, "rmse": e.rmse_bar, "norm": "l1"}),
+                          ("clairvoyant: band + rmse (linf)", {"steady": steady, "rmse": e.rmse_bar, "norm": "linf"})):
+            vals = []
+            for r in range(a.episodes):
+                try:
+                    vals.append(least_jerk_of_trace(traces["IDM-as-CAV"], r, dt=dt, warmup=e.warmup_seconds,
+                                                    s_min=e.s_min, s_max=e.s_max, accel_bounds=(lo, hi), **kw).jerk)
+                except ValueError:
+                    vals.append(float("nan"))
+            row[label] = vals
+        results[name] = row
+        print(name, json.dumps({k: round(sum(v) / len(v), 4) for k, v in row.items()}), flush=True)
+    labels = list(next(iter(results.values())))
+    md = ["| case | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
+    for name, row in results.items():
+        ref = sum(row["IDM-as-CAV"]) / len(row["IDM-as-CAV"])
+        cells = []
+        for k in labels:
+            m = sum(row[k]) / len(row[k])
+            cells.append(f"{m:.4f}" if k == "IDM-as-CAV" else f"{m:.4f} ({100 * (m / ref - 1):+.1f} %)")
+        md.append(f"| {name} | " + " | ".join(cells) + " |")
+    table = "\n".join(md)
+    (out / "jerk_oracle.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
+                                                      "seconds": a.seconds, "seed": a.seed, "results": results},
+                                                     indent=1))
+    (out / "jerk_oracle.md").write_text(table + "\n")
+    print(table)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,147 @@
+"""The least jerk any CAV could have on an episode, knowing the head's whole future (a linear program).
+
+A reference for the jerk bar of the ring: for one recorded episode (the head's speeds and the
+CAV's start), the smallest whole-episode mean ``|a_t - a_{t-1}| / dt`` (the report's
+``mean_abs_jerk``, :func:`~mixed_traffic.evaluation.harness.abs_jerk`) over every command
+sequence that keeps the gap bars: ``gap >= gap_floor`` throughout, ``s_min <= gap <= s_max``
+after the warm-up, speeds ``>= 0``, commands in the CAV's acceleration bounds. Optionally also
+the steady-tracking bar on the report's steady samples: ``norm="l1"`` asks ``mean |v - v_head|
+<= rmse``, implied by ``RMSE <= rmse``, so its optimum is a **lower bound** of the least jerk under
+the RMSE bar; ``norm="linf"`` asks ``|v - v_head| <= rmse`` on every steady sample, which implies
+it, so its optimum is **achieved** by a sequence that meets the bar (an upper bound).
+
+The controller it describes is not causal: it sees the head's future. No causal controller can
+do better on the episode; how far a causal one must stay above it is what the bound leaves
+open. Only the CAV right behind the head is modelled (its gap is the head gap), under the env's
+``"euler"`` update (``v' = max(0, v + a dt)``, ``x' = x + v' dt``, :func:`mixed_traffic.physics.integrate`),
+so the sequence it returns, replayed through the env's integrator, gives its gaps.
+
+Why not a TorchRL or CasADi tool: this is an L1 objective under linear constraints over a whole
+episode (about 2,000 steps), which SciPy's HiGHS solves exactly in about a second.
+
+    >>> import torch
+    >>> from mixed_traffic.evaluation.oracle import least_jerk
+    >>> head = torch.cat([torch.full((100,), 10.0), torch.full((100,), 12.0)])  # a step of the head's speed
+    >>> r = least_jerk(head, v_start=10.0, gap_start=20.0, dt=0.1, warmup=0.0, s_min=5.0, s_max=40.0)
+    >>> round(r.jerk, 6)  # the gap may open by 20 m: no acceleration change needed at all
+    0.0
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class OracleResult:
+    """``jerk``: the optimum (m/s^3, the report's mean |jerk|); ``accel``, ``speed``, ``gap``: the
+    optimal sequence (``[N]`` tensors, post-step values as in a trace); ``status``: HiGHS's message."""
+
+    jerk: float
+    accel: torch.Tensor
+    speed: torch.Tensor
+    gap: torch.Tensor
+    status: str
+
+
+def _check(name: str, ok: bool, allowed: str, got) -> None:
+    if not ok:
+        raise ValueError(f"least_jerk: {name} must be {allowed}, got {got!r}")
+
+
+def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmup: float, s_min: float,
+               s_max: float | None, accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
+               steady=None, rmse: float | None = None, norm: str = "l1") -> OracleResult:
+    """Solve the episode's least-jerk program (module docstring).
+
+    ``head_speed``: the head's speed after each step (``[N]``, a trace's ``head_speed`` row);
+    ``v_start`` / ``gap_start``: the CAV's speed and gap before the first step; ``warmup``: seconds
+    after which ``[s_min, s_max]`` applies (step ``t`` is at time ``(t + 1) dt``, as in a trace);
+    ``steady``: ``[N]`` bool mask of the samples the RMSE bar counts (with ``rmse``).
+    Raises ``ValueError`` naming the argument on bad input, and when the program is infeasible
+    (no command sequence keeps the bars on this episode).
+    """
+    from scipy import sparse as sp
+    from scipy.optimize import linprog
+
+    vh = torch.as_tensor(head_speed, dtype=torch.float64).flatten().numpy()
+    N = vh.shape[0]
+    _check("head_speed", N >= 2 and bool(np.isfinite(vh).all()), "at least 2 finite values", N)
+    _check("dt", dt > 0, "> 0", dt)
+    _check("v_start", v_start >= 0, ">= 0", v_start)
+    _check("gap_start", gap_start > 0, "> 0", gap_start)
+    lo, hi = accel_bounds
+    _check("accel_bounds", lo < 0 < hi, "(low < 0 < high)", accel_bounds)
+    _check("s_min", 0 <= s_min, ">= 0", s_min)
+    _check("s_max", s_max is None or s_max > s_min, "None or > s_min", s_max)
+    _check("norm", norm in ("l1", "linf"), "'l1' or 'linf'", norm)
+    if rmse is not None:
+        _check("rmse", rmse > 0, "> 0", rmse)
+        _check("steady", steady is not None, "a [N] bool mask when rmse is given", steady)
+    st = np.flatnonzero(torch.as_tensor(steady).flatten().numpy()) if rmse is not None else np.zeros(0, dtype=int)
+    if rmse is not None:
+        _check("steady", torch.as_tensor(steady).numel() == N, f"a mask of {N} values", torch.as_tensor(steady).numel())
+    S = len(st)
+
+    # variables: a (N), v (N), g (N), u (N - 1) >= |a_t - a_{t-1}|, e (S) >= |v - v_head| on steady samples
+    Z = lambda r, c: sp.csr_matrix((r, c))  # noqa: E731
+    eye = sp.identity(N, format="csr")
+    diff = sp.diags([np.ones(N), -np.ones(N - 1)], [0, -1], format="csr")  # x_t - x_{t-1}
+    a_eq = sp.vstack([sp.hstack([-dt * eye, diff, Z(N, N), Z(N, N - 1 + S)]),   # v_t - v_{t-1} = a_t dt
+                      sp.hstack([Z(N, N), dt * eye, diff, Z(N, N - 1 + S)])]).tocsr()  # g_t - g_{t-1} = (vh_t - v_t) dt
+    b_eq = np.concatenate([np.r_[v_start, np.zeros(N - 1)], dt * vh + np.r_[gap_start, np.zeros(N - 1)]])
+    step = sp.diags([np.ones(N - 1), -np.ones(N - 1)], [1, 0], shape=(N - 1, N), format="csr")  # a_t - a_{t-1}
+    rows = [sp.hstack([step, Z(N - 1, 2 * N), -sp.identity(N - 1), Z(N - 1, S)]),
+            sp.hstack([-step, Z(N - 1, 2 * N), -sp.identity(N - 1), Z(N - 1, S)])]
+    b_ub = [np.zeros(N - 1), np.zeros(N - 1)]
+    if S:
+        pick = sp.csr_matrix((np.ones(S), (np.arange(S), st)), shape=(S, N))
+        rows += [sp.hstack([Z(S, N), pick, Z(S, 2 * N - 1), -sp.identity(S)]),
+                 sp.hstack([Z(S, N), -pick, Z(S, 2 * N - 1), -sp.identity(S)])]
+        b_ub += [vh[st], -vh[st]]
+        if norm == "l1":
+            rows.append(sp.hstack([Z(1, 4 * N - 1), sp.csr_matrix(np.full((1, S), 1.0 / S))]))
+            b_ub.append(np.array([rmse]))
+    after = (np.arange(1, N + 1) * dt) >= warmup - 1e-9
+    bounds = ([(lo, hi)] * N + [(0.0, None)] * N
+              + [((s_min if a else gap_floor), (s_max if a and s_max is not None else None)) for a in after]
+              + [(0.0, None)] * (N - 1) + [(0.0, rmse if norm == "linf" else None)] * S)
+    cost = np.zeros(4 * N - 1 + S)
+    cost[3 * N:4 * N - 1] = 1.0 / ((N - 1) * dt)
+    res = linprog(cost, A_ub=sp.vstack(rows).tocsr(), b_ub=np.concatenate(b_ub), A_eq=a_eq, b_eq=b_eq,
+                  bounds=bounds, method="highs")
+    if res.status != 0:
+        raise ValueError(f"least_jerk: no command sequence keeps the bars on this episode ({res.message})")
+    x = torch.as_tensor(res.x)
+    return OracleResult(jerk=float(res.fun), accel=x[:N], speed=x[N:2 * N], gap=x[2 * N:3 * N], status=res.message)
+
+
+def least_jerk_of_trace(trace, row: int, *, dt: float, warmup: float, s_min: float, s_max: float | None,
+                        accel_bounds: tuple[float, float] = (-3.0, 3.0), steady=None, rmse: float | None = None,
+                        norm: str = "l1") -> OracleResult:
+    """:func:`least_jerk` on episode ``row`` of a :class:`~mixed_traffic.evaluation.harness.Trace` (its valid
+    steps); the CAV's start is recovered from its first step (``"euler"`` update)."""
+    n = int(trace.valid[row].sum())
+    gap, head_gap = trace.gap[row, :n].double(), trace.head_gap[row, :n].double()
+    if not torch.allclose(gap, head_gap):
+        raise ValueError("least_jerk_of_trace: the CAV must drive right behind the head (its gap is the head gap)")
+    v, a, vh = trace.cav_speed[row, :n].double(), trace.cav_accel[row, :n].double(), trace.head_speed[row, :n].double()
+    v_start = float(v[0] - a[0] * dt)
+    gap_start = float(gap[0] - dt * (vh[0] - v[0]))
+    mask = None if steady is None else torch.as_tensor(steady)[row, :n]
+    return least_jerk(vh, v_start=max(v_start, 0.0), gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
+                      s_max=s_max, accel_bounds=accel_bounds, steady=mask, rmse=rmse, norm=norm)
+
+
+def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tensor:
+    """The report's steady samples (``[episodes, T]`` bool): after the warm-up, the head's
+    acceleration below 0.05 m/s^2 for ``settle`` seconds (as :func:`~mixed_traffic.evaluation.harness.episode_metrics`)."""
+    from mixed_traffic.evaluation.harness import steady_samples
+
+    return steady_samples(trace.head_accel, trace.valid & (trace.time >= warmup), int(round(settle / dt)))
+
+
+__all__ = ["least_jerk", "least_jerk_of_trace", "steady_mask", "OracleResult"]

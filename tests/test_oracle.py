@@ -1,0 +1,135 @@
+"""The clairvoyant least-jerk program: its optimum against a hand solution, its sequence replayed
+through the env's integrator, its bound below any controller that keeps the bars, clear errors."""
+
+import pytest
+import torch
+
+from mixed_traffic.evaluation.harness import abs_jerk
+from mixed_traffic.evaluation.oracle import least_jerk, least_jerk_of_trace, steady_mask
+from mixed_traffic.physics import idm_accel, integrate
+
+DT = 0.1
+
+
+def _step_head(v1=10.0, v2=16.0, n1=50, n2=550):
+    return torch.cat([torch.full((n1,), v1), torch.full((n2,), v2)]).double()
+
+
+def test_least_jerk_matches_the_hand_solution_of_a_speed_step():
+    # the head drives 6 m/s faster than the CAV from the first step (nothing to anticipate); the gap may
+    # open by H = 40 - 20 m. The least variation of the acceleration: one plateau at the smallest A that
+    # closes the speed gap before the gap has opened by H (Euler steps: dv^2 / (2 A) - dv dt / 2 = H), then
+    # a drop to the small acceleration a_end with which the gap shrinks back from 40 to 5 m by the episode's
+    # end (a_end t^2 / 2 = 35 m over the t seconds left); the first step's rise is not counted, as in the report
+    head = _step_head(16.0, 16.0, 0, 600)
+    r = least_jerk(head, v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    plateau = 6.0 ** 2 / (2 * (20.0 + 6.0 * DT / 2))
+    a_end = 2 * 35.0 / (60.0 - 6.0 / plateau) ** 2
+    assert float(r.accel[0]) == pytest.approx(plateau, rel=1e-3)
+    assert r.jerk * (head.numel() - 1) * DT == pytest.approx(plateau - a_end, rel=0.01)
+    assert float(r.gap.max()) <= 40.0 + 1e-6
+    # with the step 5 s ahead, knowing it lets the CAV close in on the head first and spread the change
+    early = least_jerk(_step_head(10.0, 16.0, 50, 550), v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0,
+                       s_max=40.0)
+    assert early.jerk < r.jerk and float(early.gap.min()) < 20.0
+
+
+def test_the_sequence_replayed_through_the_env_integrator_keeps_the_bars_and_costs_the_optimum():
+    head = torch.cat([_step_head(), torch.full((300,), 11.0).double()])
+    r = least_jerk(head, v_start=12.0, gap_start=30.0, dt=DT, warmup=5.0, s_min=5.0, s_max=40.0)
+    x_h, x_c = torch.tensor(30.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
+    v = torch.tensor(12.0, dtype=torch.float64)
+    gaps, accels = [], []
+    for t in range(head.numel()):
+        x_h = x_h + head[t] * DT  # the head's post-step speed, as in a trace (Euler: x' = x + v' dt)
+        x_c, v, executed = integrate(x_c, v, r.accel[t], DT, "euler")
+        gaps.append(float(x_h - x_c))
+        accels.append(float(executed))
+    gaps = torch.tensor(gaps)
+    assert torch.allclose(gaps, r.gap.float(), atol=1e-4)
+    assert float(gaps[49:].min()) >= 5.0 - 1e-4 and float(gaps[49:].max()) <= 40.0 + 1e-4
+    jerk, valid = abs_jerk(torch.tensor([accels]), torch.ones(1, len(accels), dtype=torch.bool), DT)
+    assert float(jerk[valid].mean()) == pytest.approx(r.jerk, rel=1e-5)
+
+
+def test_no_controller_that_keeps_the_bars_has_less_jerk():
+    # an IDM follower (closed loop, the env's integrator) keeps [5, 40] m on this head; its jerk is a
+    # feasible point of the program, so the optimum lies at or below it
+    head = torch.cat([_step_head(10.0, 14.0, 100, 200), torch.full((200,), 8.0), torch.full((200,), 12.0)]).double()
+    x_h, x_c, v = 25.0, 0.0, torch.tensor(10.0, dtype=torch.float64)
+    gaps, accels = [], []
+    for t in range(head.numel()):
+        a = idm_accel(torch.tensor(x_h - x_c - 0.0), v, head[t - 1] if t else head[0], v0=30.0, T=1.0, a=2.0, b=3.0,
+                      delta=4.0, s0=5.0).clamp(-3.0, 3.0)
+        x_h = x_h + float(head[t]) * DT
+        x_c, v, executed = integrate(torch.tensor(x_c), v, a, DT, "euler")
+        x_c = float(x_c)
+        gaps.append(x_h - x_c)
+        accels.append(float(executed))
+    assert min(gaps) >= 5.0 and max(gaps[200:]) <= 40.0
+    jerk, valid = abs_jerk(torch.tensor([accels]), torch.ones(1, len(accels), dtype=torch.bool), DT)
+    r = least_jerk(head, v_start=10.0, gap_start=25.0, dt=DT, warmup=20.0, s_min=5.0, s_max=40.0)
+    assert 0.0 <= r.jerk <= float(jerk[valid].mean())
+
+
+def test_the_rmse_relaxation_sits_below_the_sequence_that_meets_it():
+    head = torch.cat([_step_head(10.0, 14.0, 100, 200), torch.full((300,), 10.0)]).double()
+    steady = torch.zeros(head.numel(), dtype=torch.bool)
+    steady[250:300] = True
+    steady[550:] = True
+    kw = dict(v_start=10.0, gap_start=20.0, dt=DT, warmup=5.0, s_min=5.0, s_max=40.0)
+    band = least_jerk(head, **kw).jerk
+    lower = least_jerk(head, steady=steady, rmse=0.2, norm="l1", **kw)
+    upper = least_jerk(head, steady=steady, rmse=0.2, norm="linf", **kw)
+    assert band <= lower.jerk + 1e-9 <= upper.jerk + 2e-9
+    err = (upper.speed - head)[steady]
+    assert float(err.abs().max()) <= 0.2 + 1e-6 and float(err.pow(2).mean().sqrt()) <= 0.2 + 1e-6
+    assert float((lower.speed - head)[steady].abs().mean()) <= 0.2 + 1e-6
+
+
+def test_the_trace_helper_recovers_the_start_and_the_reports_steady_samples():
+    from mixed_traffic.evaluation.harness import Trace
+
+    head = _step_head(10.0, 14.0, 100, 200).float()
+    n = head.numel()
+    time = (torch.arange(n) + 1) * DT
+    accel = torch.zeros(n)
+    accel[100:140] = 1.0  # the CAV's own answer, which keeps the bars: speed 10 -> 14 over 4 s
+    speed = 10.0 + torch.cumsum(accel, 0) * DT
+    gap = 20.0 + torch.cumsum(head - speed, 0) * DT
+    head_accel = torch.zeros(n)
+    head_accel[100] = 40.0
+    tr = Trace(time=time[None], head_speed=head[None], cav_speed=speed[None], cav_accel=accel[None],
+               head_accel=head_accel[None], gap=gap[None], head_gap=gap[None], valid=torch.ones(1, n, dtype=torch.bool),
+               raw_accel=accel[None])
+    st = steady_mask(tr, dt=DT, warmup=5.0, settle=8.0)
+    # steady: 8 s (80 steps) without the head accelerating, after the 5-s warm-up
+    assert st[0, :79].sum() == 0 and bool(st[0, 79:100].all())
+    assert st[0, 100:180].sum() == 0 and bool(st[0, 180:].all())
+    r = least_jerk_of_trace(tr, 0, dt=DT, warmup=5.0, s_min=5.0, s_max=40.0, steady=st, rmse=0.2)
+    own, valid = abs_jerk(accel[None], tr.valid, DT)
+    assert r.jerk <= float(own[valid].mean()) + 1e-9
+    # the start it recovered from the trace's first step: the CAV at 10 m/s, 20 m behind the head
+    assert float(r.speed[0] - r.accel[0] * DT) == pytest.approx(10.0, abs=1e-4)
+    assert float(r.gap[0] - DT * (head[0] - r.speed[0])) == pytest.approx(20.0, abs=1e-4)
+    tr.head_gap = tr.head_gap + 1.0
+    with pytest.raises(ValueError, match="right behind the head"):
+        least_jerk_of_trace(tr, 0, dt=DT, warmup=5.0, s_min=5.0, s_max=40.0)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"dt": 0.0}, "dt"), ({"v_start": -1.0}, "v_start"), ({"gap_start": 0.0}, "gap_start"),
+    ({"accel_bounds": (1.0, 3.0)}, "accel_bounds"), ({"s_max": 4.0}, "s_max"), ({"norm": "l2"}, "norm"),
+    ({"rmse": 0.2}, "steady"), ({"rmse": -0.1, "steady": torch.ones(600, dtype=torch.bool)}, "rmse"),
+])
+def test_bad_input_names_the_argument(kwargs, field):
+    base = dict(v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    with pytest.raises(ValueError, match=field):
+        least_jerk(_step_head(), **{**base, **kwargs})
+
+
+def test_an_episode_no_command_can_keep_in_the_band_is_reported():
+    # the head drives 20 m/s faster from the first step; with 3 m/s^2 the CAV cannot hold the gap within 40 m
+    with pytest.raises(ValueError, match="no command sequence"):
+        least_jerk(_step_head(30.0, 30.0, 0, 600), v_start=10.0, gap_start=30.0, dt=DT, warmup=0.0, s_min=5.0,
+                   s_max=40.0)
