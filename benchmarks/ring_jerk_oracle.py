@@ -79,7 +79,7 @@ def main(argv=None) -> dict:
                     cfg.transforms.chain = chain
             traces[label] = evaluate(cfg, policy_factory=fac)[1][prof]
         e = cfg.eval
-        dt = float(traces["IDM-as-CAV"].time[0, 0])
+        dt = round(float(traces["IDM-as-CAV"].time[0, 0]), 6)  # the trace's float32 time
         lo, hi = eval_scenario(cfg, prof).cav_accel_bounds
         steady = steady_mask(traces["IDM-as-CAV"], dt=dt, warmup=e.warmup_seconds, settle=e.settle_seconds)
         row = {label: per_episode_jerk(tr, dt) for label, tr in traces.items()}

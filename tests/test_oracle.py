@@ -133,3 +133,12 @@ def test_an_episode_no_command_can_keep_in_the_band_is_reported():
     with pytest.raises(ValueError, match="no command sequence"):
         least_jerk(_step_head(30.0, 30.0, 0, 600), v_start=10.0, gap_start=30.0, dt=DT, warmup=0.0, s_min=5.0,
                    s_max=40.0)
+
+
+def test_the_module_example_runs():
+    import doctest
+
+    from mixed_traffic.evaluation import oracle
+
+    result = doctest.testmod(oracle)
+    assert result.attempted >= 3 and result.failed == 0
