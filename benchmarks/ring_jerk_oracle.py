@@ -14,7 +14,8 @@ layer (the reference of the jerk bar), then solves per episode the least whole-e
 
 The gap between a causal controller and the clairvoyant figure is what not knowing the head's
 future costs; a bar that even the clairvoyant figure misses cannot be met by any controller.
-Writes ``OUT/jerk_oracle.json`` and ``OUT/jerk_oracle.md`` and prints the table::
+``--profiles random_steps ...`` runs the run's own evaluation profiles instead (its ``eval.seed``, its
+episode length). Writes ``OUT/jerk_oracle.json`` and ``OUT/jerk_oracle.md`` and prints the table::
 
     python benchmarks/ring_jerk_oracle.py --checkpoint outputs/results/ring_eng5_seed0 \\
         --out outputs/results/ring_eng5_seed0/jerk_oracle
@@ -46,11 +47,14 @@ def main(argv=None) -> dict:
     p.add_argument("--seconds", type=float, default=200.0)
     p.add_argument("--seed", type=int, default=2000)
     p.add_argument("--cases", nargs="+", default=None, help="subset of ring_generalization's cases")
+    p.add_argument("--profiles", nargs="+", default=(),
+                   help="evaluation profiles of the run (e.g. random_steps), on its own episodes (eval.seed) "
+                        "instead of the held-out cases")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
 
     import torch
-    from omegaconf import open_dict
+    from omegaconf import OmegaConf, open_dict
     from ring_generalization import case_config, cases
 
     from mixed_traffic.evaluation.harness import eval_scenario, evaluate
@@ -64,13 +68,20 @@ def main(argv=None) -> dict:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for name in a.cases or list(all_cases):
-        case = all_cases[name]
-        prof = case["profile"]
+    def config_for(name):
+        if name in a.profiles:  # the run's own evaluation of that profile, with --episodes episodes
+            cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+            with open_dict(cfg):
+                cfg.eval.profiles, cfg.eval.episodes = [name], a.episodes
+            return cfg, name
+        return (case_config(run_cfg, all_cases[name], episodes=a.episodes, seconds=a.seconds, seed=a.seed),
+                all_cases[name]["profile"])
+
+    for name in list(a.profiles) or a.cases or list(all_cases):
         traces = {}
         for label, chain, fac in (("policy + layer", None, factory), ("policy, no layer", "no_layer", factory),
                                   ("IDM-as-CAV", ["non_negative_reward"], classic_factory("idm"))):
-            cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+            cfg, prof = config_for(name)
             with open_dict(cfg):
                 cfg.eval.without_layer = False
                 if chain == "no_layer":
@@ -106,8 +117,10 @@ def main(argv=None) -> dict:
             cells.append(f"{m:.4f}" if k == "IDM-as-CAV" else f"{m:.4f} ({100 * (m / ref - 1):+.1f} %)")
         md.append(f"| {name} | " + " | ".join(cells) + " |")
     table = "\n".join(md)
+    own = bool(a.profiles)  # the run's own evaluation episodes
     (out / "jerk_oracle.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
-                                                      "seconds": a.seconds, "seed": a.seed, "results": results},
+                                                      "seconds": run_cfg.eval.episode_seconds if own else a.seconds,
+                                                      "seed": run_cfg.eval.seed if own else a.seed, "results": results},
                                                      indent=1))
     (out / "jerk_oracle.md").write_text(table + "\n")
     print(table)
