@@ -19,6 +19,8 @@ episode length). Writes ``OUT/jerk_oracle.json`` and ``OUT/jerk_oracle.md`` and 
 
     python benchmarks/ring_jerk_oracle.py --checkpoint outputs/results/ring_eng5_seed0 \\
         --out outputs/results/ring_eng5_seed0/jerk_oracle
+    python benchmarks/ring_jerk_oracle.py --checkpoint outputs/results/ring_eng5_seed0 --cases fast_steps stop_and_go \\
+        --out /tmp/jerk_oracle --plot docs/img/ring_jerk_oracle.png
 """
 
 from __future__ import annotations
@@ -51,6 +53,10 @@ def main(argv=None) -> dict:
                    help="evaluation profiles of the run (e.g. random_steps), on its own episodes (eval.seed) "
                         "instead of the held-out cases")
     p.add_argument("--out", required=True)
+    p.add_argument("--plot", default=None,
+                   help="PNG: episode 0 of each case, speed, gap and command of the policy without its layer, "
+                        "IDM-as-CAV and the clairvoyant band + RMSE (linf) sequence")
+    p.add_argument("--plot-seconds", type=float, nargs=2, default=(20.0, 110.0), help="time window of --plot")
     a = p.parse_args(argv)
 
     import torch
@@ -67,7 +73,8 @@ def main(argv=None) -> dict:
     all_cases = cases(a.seconds)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {}
+    results, plotted = {}, {}
+
     def config_for(name):
         if name in a.profiles:  # the run's own evaluation of that profile, with --episodes episodes
             cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
@@ -100,8 +107,11 @@ def main(argv=None) -> dict:
             vals = []
             for r in range(a.episodes):
                 try:
-                    vals.append(least_jerk_of_trace(traces["IDM-as-CAV"], r, dt=dt, warmup=e.warmup_seconds,
-                                                    s_min=e.s_min, s_max=e.s_max, accel_bounds=(lo, hi), **kw).jerk)
+                    sol = least_jerk_of_trace(traces["IDM-as-CAV"], r, dt=dt, warmup=e.warmup_seconds,
+                                              s_min=e.s_min, s_max=e.s_max, accel_bounds=(lo, hi), **kw)
+                    vals.append(sol.jerk)
+                    if r == 0 and kw.get("norm") == "linf":
+                        plotted[name] = (traces, sol)
                 except ValueError:
                     vals.append(float("nan"))
             row[label] = vals
@@ -124,7 +134,45 @@ def main(argv=None) -> dict:
                                                      indent=1))
     (out / "jerk_oracle.md").write_text(table + "\n")
     print(table)
+    if a.plot:
+        plot_episodes(plotted, a.plot, window=a.plot_seconds, s_band=(cfg.eval.s_min, cfg.eval.s_max))
     return results
+
+
+def plot_episodes(plotted: dict, path, *, window, s_band) -> None:
+    """One column per case: speed (with the head's), gap (with the band) and command over ``window`` s of
+    episode 0, for the policy without its layer, IDM-as-CAV and the clairvoyant sequence."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, len(plotted), figsize=(5.5 * len(plotted), 7), sharex="col", squeeze=False)
+    for j, (name, (traces, sol)) in enumerate(plotted.items()):
+        ref = traces["IDM-as-CAV"]
+        t = ref.time[0]
+        k = (t >= window[0]) & (t <= window[1])
+        series = {"policy, no layer": traces["policy, no layer"], "IDM-as-CAV": ref}
+        axes[0, j].plot(t[k], ref.head_speed[0][k], color="0.6", lw=2.5, label="head")
+        for label, tr in series.items():
+            axes[0, j].plot(t[k], tr.cav_speed[0][k], label=label)
+            axes[1, j].plot(t[k], tr.gap[0][k], label=label)
+            axes[2, j].plot(t[k], tr.cav_accel[0][k], label=label)
+        axes[0, j].plot(t[k], sol.speed[k], "k--", label="clairvoyant (band + RMSE)")
+        axes[1, j].plot(t[k], sol.gap[k], "k--")
+        axes[2, j].plot(t[k], sol.accel[k], "k--")
+        for s in s_band:
+            axes[1, j].axhline(s, color="r", lw=0.8, ls=":")
+        axes[0, j].set_title(name)
+        axes[0, j].set_ylabel("speed (m/s)")
+        axes[1, j].set_ylabel("gap (m)")
+        axes[2, j].set_ylabel("command (m/s²)")
+        axes[2, j].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
