@@ -38,23 +38,20 @@ CASES = ("fast_steps", "stop_and_go", "brake_to_standstill", "random_steps", "em
 
 
 class SoftFollower(nn.Module):
-    """``min(ks (gap - s0 - h v) + kv (v_lead - v), IDM(gap, v, v_lead))`` clipped to ``[low, high]``: a
-    linear follower with weak gap feedback, under IDM's braking (a probe of this benchmark, not a
-    pipeline controller)."""
+    """:func:`mixed_traffic.physics.soft_follower_accel` clipped to ``[low, high]``, with the envelope's
+    standstill gap named ``s0i`` and its desired speed 60 m/s (the names of this benchmark's draws;
+    ``controller=soft`` is the same law)."""
 
     def __init__(self, *, ks: float, kv: float, s0: float, h: float, T: float, s0i: float, a: float, b: float,
                  low: float = -3.0, high: float = 3.0):
         super().__init__()
-        self.lin = dict(ks=ks, kv=kv, s0=s0, h=h)
-        self.idm = dict(v0=60.0, T=T, a=a, b=b, delta=4.0, s0=s0i)
+        self.params = dict(ks=ks, kv=kv, s0=s0, h=h, T=T, s0_idm=s0i, a=a, b=b, v0=60.0)
         self.low, self.high = low, high
 
     def forward(self, gap: torch.Tensor, v: torch.Tensor, v_lead: torch.Tensor) -> torch.Tensor:
-        from mixed_traffic.physics import idm_accel
+        from mixed_traffic.physics import soft_follower_accel
 
-        p = self.lin
-        linear = p["ks"] * (gap - p["s0"] - p["h"] * v) + p["kv"] * (v_lead - v)
-        return torch.minimum(linear, idm_accel(gap, v, v_lead, **self.idm)).clamp(self.low, self.high)
+        return soft_follower_accel(gap, v, v_lead, **self.params).clamp(self.low, self.high)
 
 
 def draw(family: str, rng: random.Random) -> dict:

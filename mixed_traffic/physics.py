@@ -54,6 +54,33 @@ class IDMParams:
         return cls(v0=30.0, T=1.0, a=1.0, b=1.5, delta=4.0, s0=5.0, a_min=-5.0, a_max=2.0)
 
 
+@dataclass(frozen=True)
+class SoftFollowerParams:
+    """A linear follower with weak gap feedback under an IDM envelope (:func:`soft_follower_accel`).
+
+    The defaults are the setting of ``benchmarks/ring_classical_frontier.py --family soft`` (100 random
+    settings) that met the most of the ring's bars without a layer (docs/results.md).
+    """
+
+    ks: float = 0.074  # gap gain (1/s^2)
+    kv: float = 0.65  # speed-difference gain (1/s)
+    s0: float = 8.45  # the linear law's standstill gap (m)
+    h: float = 0.86  # the linear law's time headway (s)
+    T: float = 0.7  # the envelope's IDM headway (s)
+    s0_idm: float = 4.53  # the envelope's IDM standstill gap (m)
+    a: float = 2.17  # the envelope's IDM acceleration (m/s^2)
+    b: float = 3.02  # the envelope's IDM comfortable deceleration (m/s^2)
+    v0: float = 60.0  # the envelope's IDM desired speed (m/s)
+
+
+def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv: Num, s0: Num, h: Num, T: Num,
+                        s0_idm: Num, a: Num, b: Num, v0: Num, **_) -> Tensor:
+    """``min(ks (gap - s0 - h v) + kv (v_leader - v), IDM(gap, v, v_leader))``: the linear law lets the gap
+    float inside a band (weak gap feedback), the IDM envelope (delta 4) brakes where IDM would."""
+    linear = ks * (gap - s0 - h * v) + kv * (v_leader - v)
+    return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
+
+
 def params_as_tensors(params, shape, *, dtype=torch.float32, device=None) -> dict[str, Tensor]:
     """Expand a parameter dataclass to a dict of tensors of ``shape`` (per vehicle)."""
     return {

@@ -124,7 +124,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.intervention_cost.coef": Real(0, lo_open=True),
     "transforms.intervention_cost.mode": OneOf(("magnitude", "indicator", "both")),
     "transforms.intervention_cost.direction": OneOf(("both", "brake", "push")),
-    "transforms.residual.base": OneOf(("idm", "ovm")),
+    "transforms.residual.base": OneOf(("idm", "ovm", "soft")),
     "transforms.residual.weight": Real(0),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),

@@ -71,7 +71,7 @@ def test_jerk_after_the_warm_up_leaves_the_start_transient_out():
 
 
 def test_classic_controllers_follow_without_collision():
-    for name in ("idm", "ovm"):
+    for name in ("idm", "ovm", "soft"):
         env = make_env("ring", batch_size=3, seed=0)
         td = env.rollout(600, make_classic_policy(name, env), break_when_any_done=False)
         assert not td["next", "collision"].any(), name

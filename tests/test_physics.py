@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import pytest
@@ -219,3 +220,21 @@ def test_sumo_speed_mode_95_bad_input_names_the_field(kw, field):
     args.update(kw)
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         sumo_speed_mode_95(_t(1.0), _t(10.0), _t(10.0), _t(10.0), **args)
+
+
+def test_soft_follower_is_its_linear_law_in_the_band_and_idm_near_the_leader():
+    from mixed_traffic.physics import SoftFollowerParams, idm_accel, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams())
+    v = torch.tensor([15.0, 15.0, 15.0])
+    # at the linear law's own gap and the leader's speed it commands nothing, whatever IDM says there
+    gap = torch.full((3,), p["s0"] + p["h"] * 15.0)
+    assert torch.allclose(soft_follower_accel(gap, v, v, **p), torch.zeros(3), atol=1e-6)
+    # a wider gap: the weak gap feedback, ks per metre, below IDM's command
+    wide = gap + 10.0
+    assert torch.allclose(soft_follower_accel(wide, v, v, **p), torch.full((3,), 10.0 * p["ks"]), atol=1e-6)
+    # closing fast on a near leader: IDM's braking, below the linear law's
+    near, slow = torch.full((3,), 12.0), torch.full((3,), 5.0)
+    idm = idm_accel(near, v, slow, v0=p["v0"], T=p["T"], a=p["a"], b=p["b"], delta=4.0, s0=p["s0_idm"])
+    out = soft_follower_accel(near, v, slow, **p)
+    assert torch.allclose(out, idm) and bool((out < -3.0).all())

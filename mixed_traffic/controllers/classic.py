@@ -1,4 +1,4 @@
-"""Classical car-following models driving the CAV: IDM and OVM as policies.
+"""Classical car-following models driving the CAV: IDM, OVM and a soft follower as policies.
 
 Each is a ``TensorDictModule`` reading the env's ``("cav", "gap")``, ``("cav", "speed")``
 and ``("cav", "leader_speed")`` and writing ``"action"`` (m/s^2, saturated and clipped
@@ -20,9 +20,10 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from mixed_traffic.physics import IDMParams, OVMParams, car_following_accel
+from mixed_traffic.physics import IDMParams, OVMParams, SoftFollowerParams, car_following_accel, soft_follower_accel
 
-CLASSIC = ("idm", "ovm")
+CLASSIC = ("idm", "ovm", "soft")
+_PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams}
 
 
 class CarFollowingCAV(nn.Module):
@@ -44,7 +45,10 @@ class CarFollowingCAV(nn.Module):
         self.low, self.high = float(low), float(high)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
+        if self.model == "soft":
+            a = soft_follower_accel(gap, speed, leader_speed, **self.params)
+        else:
+            a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
         return a.clamp(self.low, self.high)
 
 
@@ -58,13 +62,14 @@ def classic_parameters(model: str) -> list[str]:
     """Names ``make_classic_policy(model, ...)`` accepts: the model's parameters (IDM: and ``gap_max``)."""
     if model not in CLASSIC:
         raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
-    names = {f.name for f in dataclasses.fields(IDMParams if model == "idm" else OVMParams)}
+    names = {f.name for f in dataclasses.fields(_PARAMS[model])}
     return sorted(names | ({"gap_max"} if model == "idm" else set()))
 
 
 def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
                         **param_overrides) -> TensorDictModule:
-    """IDM (SUMO's defaults, as the ring's humans) or OVM (DeeP-LCC's set) driving every CAV.
+    """IDM (SUMO's defaults, as the ring's humans), OVM (DeeP-LCC's set) or the soft follower
+    (:class:`~mixed_traffic.physics.SoftFollowerParams`) driving every CAV.
 
     Bounds come from ``env.action_spec`` unless given; ``param_overrides`` replace model
     parameters (``make_classic_policy("idm", env, T=1.5)``); unknown names raise ValueError.
@@ -72,7 +77,7 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
     (``mixed_traffic.physics.idm_accel``), a bound the humans' IDM does not have.
     """
     allowed = classic_parameters(model)  # an unknown model fails here
-    base = IDMParams() if model == "idm" else OVMParams()
+    base = _PARAMS[model]()
     unknown = set(param_overrides) - set(allowed)
     if unknown:
         raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {allowed}")
