@@ -138,7 +138,7 @@ class ResidualConfig:
     to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
     """
 
-    base: str = "idm"
+    base: str = "idm"  # "idm", "ovm" or "soft" (mixed_traffic.controllers.classic)
     weight: float = 0.5
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
     engage_seconds: float = 0.0
@@ -618,7 +618,7 @@ class Config:
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads per run (the joblib launcher runs jobs side by side)
     checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
-    controller: str | None = None  # mt-eval: a classical controller instead ("idm", "ovm"; wave rings: a damper or "all")
+    controller: str | None = None  # mt-eval: a classical controller instead ("idm", "ovm", "soft"; wave rings: a damper or "all")
     resume: str | None = None  # path to a checkpoint (.pt) or a run directory
     resume_override: bool = False  # resume even though budgets/hyper-parameters differ from the checkpoint's
     out_dir: str = "${hydra:runtime.output_dir}"
