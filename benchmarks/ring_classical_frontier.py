@@ -6,9 +6,10 @@ held-out cases of ``ring_generalization.py``, the run's ``eval.seed`` for the pr
 
 - ``idm``: IDM with a (0.6-2.5 m/s^2), b (1-5), T (0.4-1.5 s), s0 (5-8 m), v0 (30-80 m/s or 60),
   delta (2/4/6/8) and, in 70 % of the draws, the steady-gap cap ``gap_max`` (18-34 m);
-- ``soft``: a linear follower ``ks (gap - s0 - h v) + kv (v_lead - v)`` under an IDM envelope
-  (the lower of the two commands; IDM with v0 = 60 m/s and its own T, s0, a, b), a controller
-  outside the IDM family that can let the gap float inside the band (:class:`SoftFollower`).
+- ``soft``: ``controller=soft``, a linear follower ``ks (gap - s0 - h v) + kv (v_lead - v)`` under
+  an IDM envelope (the lower of the two commands; IDM with v0 = 60 m/s and its own T, s0_idm, a, b),
+  a controller outside the IDM family that can let the gap float inside the band
+  (:func:`mixed_traffic.physics.soft_follower_accel`).
 
 Per case a setting meets the bars when it has 0 collisions, gaps in [s_min, s_max] after the
 warm-up, steady RMSE <= ``eval.rmse_bar``, jerk <= IDM-as-CAV's and return >= IDM-as-CAV's. Prints,
@@ -32,26 +33,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import torch  # noqa: E402
-from torch import nn  # noqa: E402
 
 CASES = ("fast_steps", "stop_and_go", "brake_to_standstill", "random_steps", "emergency_brake")
-
-
-class SoftFollower(nn.Module):
-    """:func:`mixed_traffic.physics.soft_follower_accel` clipped to ``[low, high]``, with the envelope's
-    standstill gap named ``s0i`` and its desired speed 60 m/s (the names of this benchmark's draws;
-    ``controller=soft`` is the same law)."""
-
-    def __init__(self, *, ks: float, kv: float, s0: float, h: float, T: float, s0i: float, a: float, b: float,
-                 low: float = -3.0, high: float = 3.0):
-        super().__init__()
-        self.params = dict(ks=ks, kv=kv, s0=s0, h=h, T=T, s0_idm=s0i, a=a, b=b, v0=60.0)
-        self.low, self.high = low, high
-
-    def forward(self, gap: torch.Tensor, v: torch.Tensor, v_lead: torch.Tensor) -> torch.Tensor:
-        from mixed_traffic.physics import soft_follower_accel
-
-        return soft_follower_accel(gap, v, v_lead, **self.params).clamp(self.low, self.high)
 
 
 def draw(family: str, rng: random.Random) -> dict:
@@ -62,40 +45,28 @@ def draw(family: str, rng: random.Random) -> dict:
         if rng.random() < 0.7:
             p["gap_max"] = u(18, 34, 1)
         return p
-    return dict(ks=u(0.02, 0.15, 3), kv=u(0.1, 0.8), s0=u(5, 9), h=u(0.4, 1.2), T=u(0.2, 1.0), s0i=u(3, 7),
+    return dict(ks=u(0.02, 0.15, 3), kv=u(0.1, 0.8), s0=u(5, 9), h=u(0.4, 1.2), T=u(0.2, 1.0), s0_idm=u(3, 7),
                 a=u(1, 3), b=u(1.5, 4))
 
 
 def factory(family: str, params: dict | None):
-    from tensordict.nn import TensorDictModule
-
+    """``controller=<family>:<params>`` (IDM-as-CAV with ``params=None``)."""
     from mixed_traffic.evaluation.policies import classic_factory
 
     if params is None:
         return classic_factory("idm")
-    if family == "idm":
-        return classic_factory("idm:" + ";".join(f"{k}={v}" for k, v in params.items()))
-    return lambda env: TensorDictModule(SoftFollower(**params), in_keys=[("cav", "gap"), ("cav", "speed"),
-                                                                         ("cav", "leader_speed")], out_keys=["action"])
+    return classic_factory(f"{family}:" + ";".join(f"{k}={v}" for k, v in params.items()))
 
 
 def run(run_cfg, fac, *, episodes: int) -> dict:
-    from omegaconf import OmegaConf, open_dict
-    from ring_generalization import case_config, cases
+    from omegaconf import open_dict
+    from ring_generalization import named_config
 
     from mixed_traffic.evaluation.harness import evaluate
 
-    held_out = cases(200.0)
     out = {}
     for name in CASES:
-        if name in held_out:
-            cfg = case_config(run_cfg, held_out[name], episodes=episodes, seconds=200.0, seed=2000)
-            prof = held_out[name]["profile"]
-        else:
-            cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
-            prof = name
-            with open_dict(cfg):
-                cfg.eval.profiles, cfg.eval.episodes = [name], episodes
+        cfg, prof = named_config(run_cfg, name, episodes=episodes, seconds=200.0, seed=2000)
         with open_dict(cfg):
             cfg.transforms.chain, cfg.eval.without_layer = ["non_negative_reward"], False
         rep = evaluate(cfg, policy_factory=fac)[0]

@@ -72,6 +72,20 @@ def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int
     return cfg
 
 
+def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int):
+    """``(config, profile)`` of a held-out case (:func:`cases`) or, for any other name, of the run's own
+    evaluation profile ``name`` (its ``eval.seed`` and episode length) with ``episodes`` episodes."""
+    from omegaconf import OmegaConf, open_dict
+
+    held_out = cases(seconds)
+    if name in held_out:
+        return case_config(run_cfg, held_out[name], episodes=episodes, seconds=seconds, seed=seed), held_out[name]["profile"]
+    cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+    with open_dict(cfg):
+        cfg.eval.profiles, cfg.eval.episodes = [name], episodes
+    return cfg, name
+
+
 def row(rep: dict, profile: str) -> dict:
     m = rep["profiles"][profile]["metrics"]
     return {"collisions": rep["profiles"][profile]["collisions"], "min_gap": m["min_gap"]["min"],

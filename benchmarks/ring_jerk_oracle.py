@@ -35,13 +35,6 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
-def per_episode_jerk(trace, dt: float) -> list[float]:
-    from mixed_traffic.evaluation.harness import abs_jerk
-
-    jerk, valid = abs_jerk(trace.cav_accel, trace.valid, dt)
-    return ((jerk * valid).sum(1) / valid.sum(1).clamp_min(1)).tolist()
-
-
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--checkpoint", required=True, help="final.pt or a run directory")
@@ -60,8 +53,8 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
 
     import torch
-    from omegaconf import OmegaConf, open_dict
-    from ring_generalization import case_config, cases
+    from omegaconf import open_dict
+    from ring_generalization import cases, named_config
 
     from mixed_traffic.evaluation.harness import eval_scenario, evaluate
     from mixed_traffic.evaluation.oracle import least_jerk_of_trace, steady_mask
@@ -75,32 +68,25 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     results, plotted = {}, {}
 
-    def config_for(name):
-        if name in a.profiles:  # the run's own evaluation of that profile, with --episodes episodes
-            cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
-            with open_dict(cfg):
-                cfg.eval.profiles, cfg.eval.episodes = [name], a.episodes
-            return cfg, name
-        return (case_config(run_cfg, all_cases[name], episodes=a.episodes, seconds=a.seconds, seed=a.seed),
-                all_cases[name]["profile"])
-
     for name in list(a.profiles) or a.cases or list(all_cases):
         traces = {}
+        row = {}
         for label, chain, fac in (("policy + layer", None, factory), ("policy, no layer", "no_layer", factory),
                                   ("IDM-as-CAV", ["non_negative_reward"], classic_factory("idm"))):
-            cfg, prof = config_for(name)
+            cfg, prof = named_config(run_cfg, name, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
             with open_dict(cfg):
                 cfg.eval.without_layer = False
                 if chain == "no_layer":
                     cfg.transforms.chain = [t for t in cfg.transforms.chain if t != "safety_layer"]
                 elif chain is not None:
                     cfg.transforms.chain = chain
-            traces[label] = evaluate(cfg, policy_factory=fac)[1][prof]
+            rep, tr = evaluate(cfg, policy_factory=fac)
+            traces[label] = tr[prof]
+            row[label] = rep["profiles"][prof]["per_episode"]["mean_abs_jerk"]
         e = cfg.eval
         dt = round(float(traces["IDM-as-CAV"].time[0, 0]), 6)  # the trace's float32 time
         lo, hi = eval_scenario(cfg, prof).cav_accel_bounds
         steady = steady_mask(traces["IDM-as-CAV"], dt=dt, warmup=e.warmup_seconds, settle=e.settle_seconds)
-        row = {label: per_episode_jerk(tr, dt) for label, tr in traces.items()}
         for label, kw in (("clairvoyant: band", {}),
                           ("clairvoyant: band + rmse (l1)", {"steady": steady, "rmse": e.rmse_bar, "norm": "l1"}),
                           ("clairvoyant: band + rmse (linf)", {"steady": steady, "rmse": e.rmse_bar, "norm": "linf"})):

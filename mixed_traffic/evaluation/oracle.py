@@ -81,12 +81,13 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     _check("s_max", s_max is None or s_max > s_min, "None or > s_min", s_max)
     _check("norm", norm in ("l1", "linf"), "'l1' or 'linf'", norm)
     _check("time_limit", time_limit > 0, "> 0 (seconds)", time_limit)
+    st = np.zeros(0, dtype=int)  # the steady samples the RMSE bar counts
     if rmse is not None:
         _check("rmse", rmse > 0, "> 0", rmse)
         _check("steady", steady is not None, "a [N] bool mask when rmse is given", steady)
-    st = np.flatnonzero(torch.as_tensor(steady).flatten().numpy()) if rmse is not None else np.zeros(0, dtype=int)
-    if rmse is not None:
-        _check("steady", torch.as_tensor(steady).numel() == N, f"a mask of {N} values", torch.as_tensor(steady).numel())
+        mask = torch.as_tensor(steady).flatten()
+        _check("steady", mask.numel() == N, f"a mask of {N} values", mask.numel())
+        st = np.flatnonzero(mask.numpy())
     S = len(st)
 
     # variables: a (N), v (N), g (N), u (N - 1) >= |a_t - a_{t-1}|, e (S) >= |v - v_head| on steady samples
