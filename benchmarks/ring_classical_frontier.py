@@ -58,7 +58,7 @@ def factory(family: str, params: dict | None):
     return classic_factory(f"{family}:" + ";".join(f"{k}={v}" for k, v in params.items()))
 
 
-def run(run_cfg, fac, *, episodes: int) -> dict:
+def run(run_cfg, fac, *, episodes: int, seed: int = 2000) -> dict:
     from omegaconf import open_dict
     from ring_generalization import named_config
 
@@ -66,7 +66,7 @@ def run(run_cfg, fac, *, episodes: int) -> dict:
 
     out = {}
     for name in CASES:
-        cfg, prof = named_config(run_cfg, name, episodes=episodes, seconds=200.0, seed=2000)
+        cfg, prof = named_config(run_cfg, name, episodes=episodes, seconds=200.0, seed=seed)
         with open_dict(cfg):
             cfg.transforms.chain, cfg.eval.without_layer = ["non_negative_reward"], False
         rep = evaluate(cfg, policy_factory=fac)[0]

@@ -239,9 +239,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         model = OmegaConf.select(cfg, "transforms.residual.base", default="idm")
         allowed = classic_parameters(model)
         for k, v in params.items():
+            if v is None:  # null: no override (an experiment over an IDM base nulls gap_max to switch base)
+                continue
             if k not in allowed:
                 raise ConfigError(f"transforms.residual.params.{k}", f"is not a {model} parameter", str(allowed))
-            Real(optional=k == "gap_max")(f"transforms.residual.params.{k}", v)  # gap_max: null is IDM's own
+            Real()(f"transforms.residual.params.{k}", v)
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

@@ -197,3 +197,25 @@ def test_small_budget_keeps_the_main_jobs_apg_settings_valid():
     apply_small_budget(cfg)
     assert cfg.policy.apg.iterations == 3 and cfg.policy.apg.average_last == 3
     assert cfg.trainer.total_frames <= 4 * cfg.trainer.num_envs * cfg.trainer.rollout_len
+
+
+def test_soft_experiment_is_the_default_over_the_speed_scaled_soft_base():
+    """``experiment=ring_lagrangian_ppo_soft`` changes only the residual's base: its parameters are
+    ``physics.SOFT_SCALED`` and the IDM base's ``gap_max`` is nulled (dropped) so the soft base builds."""
+    from mixed_traffic.physics import SOFT_SCALED
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import validate_config
+
+    soft, smooth = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_soft", "ring_lagrangian_ppo_smooth"))
+    params = dict(soft.transforms.residual.params)
+    assert soft.transforms.residual.base == "soft" and params.pop("gap_max") is None and params.pop("v0") == 60.0
+    assert params == SOFT_SCALED
+    for key in ("policy", "loss", "trainer", "env"):
+        assert OmegaConf.to_container(soft[key]) == OmegaConf.to_container(smooth[key]), key
+    validate_config(soft)
+    env = make_transformed_env(soft, num_envs=2, seed=0)
+    assert env.rollout(5)["next", "cav", "gap"].shape[:2] == (2, 5)
+    # a null elsewhere is no override either; a number for a parameter the base lacks still fails
+    validate_config(compose(["experiment=ring_lagrangian_ppo_soft", "transforms.residual.params.s9=null"]))
+    with pytest.raises(ValueError, match=r"transforms\.residual\.params\.gap_max"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_soft", "transforms.residual.params.gap_max=27.0"]))

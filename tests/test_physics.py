@@ -238,3 +238,40 @@ def test_soft_follower_is_its_linear_law_in_the_band_and_idm_near_the_leader():
     idm = idm_accel(near, v, slow, v0=p["v0"], T=p["T"], a=p["a"], b=p["b"], delta=4.0, s0=p["s0_idm"])
     out = soft_follower_accel(near, v, slow, **p)
     assert torch.allclose(out, idm) and bool((out < -3.0).all())
+
+
+def test_soft_follower_speed_scaling_and_closing_gain_against_hand_values():
+    from mixed_traffic.physics import SOFT_SCALED, SoftFollowerParams, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams()) | {"kv_closing": 0.3, "v_ref": 10.0}
+    v, lead = torch.tensor([8.0, 20.0]), torch.tensor([9.0, 21.0])  # below and above v_ref, leader faster
+    far = p["s0"] + p["h"] * v + 5.0  # 5 m beyond the linear law's gap; the IDM envelope does not bind there
+    lin = p["ks"] * (far - p["s0"] - p["h"] * v) + p["kv"] * (lead - v)
+    assert torch.allclose(soft_follower_accel(far, v, lead, **p), lin * torch.tensor([1.0, 10.0 / 20.0]), atol=1e-6)
+    # a slower leader: the closing gain, and the same scaling
+    slow = v - 1.0
+    lin = p["ks"] * (far - p["s0"] - p["h"] * v) - p["kv_closing"]
+    assert torch.allclose(soft_follower_accel(far, v, slow, **p), lin * torch.tensor([1.0, 0.5]), atol=1e-6)
+    # brake_opening 0: no braking of the linear law while the leader is faster; the envelope still brakes
+    close = torch.tensor([p["s0"] + p["h"] * 8.0 - 5.0])  # IDM still accelerates here
+    v8, lead8 = torch.tensor([8.0]), torch.tensor([8.3])
+    assert float(soft_follower_accel(close, v8, lead8, **p)) < 0.0
+    assert float(soft_follower_accel(close, v8, lead8, **(p | {"brake_opening": 0.0}))) == 0.0
+    assert float(soft_follower_accel(close, v8, v8 - 0.3, **(p | {"brake_opening": 0.0}))) < 0.0  # slower: brakes
+    # the defaults (kv_closing = kv, no v_ref, brake_opening 1) are the unscaled symmetric law
+    d = dataclasses.asdict(SoftFollowerParams())
+    assert d["kv_closing"] == d["kv"] and math.isinf(d["v_ref"]) and d["brake_opening"] == 1.0
+    assert set(SOFT_SCALED) <= set(d)
+
+
+def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.physics import SOFT_SCALED
+
+    env = make_env("ring", batch_size=4, seed=0, profile="random_steps",
+                   profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0})
+    td = env.rollout(1500, make_classic_policy("soft", env, **SOFT_SCALED))
+    assert not bool(td["next", "collision"].any())
+    gap = td["next", "cav", "gap"][:, 200:]  # after a 20-s warm-up: inside the evaluation band
+    assert float(gap.min()) > 5.0 and float(gap.max()) < 40.0

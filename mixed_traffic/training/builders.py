@@ -125,7 +125,8 @@ def _residual_idm(tcfg, env):
 
     r = tcfg.residual
     try:
-        base = make_classic_policy(r.base, env, **dict(r.get("params") or {}))
+        params = {k: v for k, v in dict(r.get("params") or {}).items() if v is not None}  # null: the model's own
+        base = make_classic_policy(r.base, env, **params)
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0))
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
