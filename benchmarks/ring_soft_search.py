@@ -64,7 +64,8 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     run_cfg, _ = checkpoint_config(a.checkpoint)
     fields = sorted(dataclasses.asdict(SoftFollowerParams()))
-    cur = {k: getattr(SoftFollowerParams(), k) for k in BOUNDS} | {"v_ref": 15.0, "brake_opening": 0.0}
+    d = SoftFollowerParams()
+    cur = {k: getattr(d, k) for k in BOUNDS} | {"kv_closing": d.kv, "v_ref": 15.0, "brake_opening": 0.0}
     cur.update(json.loads(a.start) if a.start else {})
     unknown = set(cur) - set(fields)
     if unknown:

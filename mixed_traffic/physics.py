@@ -59,8 +59,9 @@ class SoftFollowerParams:
     """A linear follower with weak gap feedback under an IDM envelope (:func:`soft_follower_accel`).
 
     The defaults are the setting of ``benchmarks/ring_classical_frontier.py --family soft`` (100 random
-    settings) that met the most of the ring's bars without a layer (docs/results.md); with them
-    ``kv_closing = kv`` and ``v_ref = inf`` (no speed scaling). :data:`SOFT_SCALED` is a setting with both.
+    settings) that met the most of the ring's bars without a layer (docs/results.md); with them the law is
+    symmetric (``kv_closing`` None: ``kv``), unscaled (``v_ref`` inf), uncapped and brakes wherever its
+    command is negative. :data:`SOFT_SCALED` is a setting with the speed scaling and a closing gain.
     """
 
     ks: float = 0.074  # gap gain (1/s^2)
@@ -72,7 +73,7 @@ class SoftFollowerParams:
     a: float = 2.17  # the envelope's IDM acceleration (m/s^2)
     b: float = 3.02  # the envelope's IDM comfortable deceleration (m/s^2)
     v0: float = 60.0  # the envelope's IDM desired speed (m/s)
-    kv_closing: float = 0.65  # speed-difference gain while the leader is slower (1/s)
+    kv_closing: float | None = None  # speed-difference gain while the leader is slower (1/s; None: kv)
     v_ref: float = math.inf  # above this speed (m/s) both gains fall as v_ref / v
     gap_cap: float = math.inf  # the linear law's desired gap s0 + h v is capped here (m)
     brake_opening: float = 1.0  # share of the linear law's braking kept while the leader is faster (0-1)
@@ -89,8 +90,10 @@ SOFT_SCALED = dict(ks=0.127, kv=0.805, kv_closing=0.71, s0=10.322, h=0.86, T=0.4
 def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv: Num, s0: Num, h: Num, T: Num,
                         s0_idm: Num, a: Num, b: Num, v0: Num, kv_closing: Num | None = None,
                         v_ref: Num = math.inf, gap_cap: Num = math.inf, brake_opening: Num = 1.0, **_) -> Tensor:
-    """``min(g(v) [ks (gap - min(s0 + h v, gap_cap)) + k (v_leader - v)], IDM(gap, v, v_leader))``: the linear law lets the
-    gap float inside a band (weak gap feedback), the IDM envelope (delta 4) brakes where IDM would.
+    """``min(g(v) [ks (gap - min(s0 + h v, gap_cap)) + k (v_leader - v)], IDM(gap, v, v_leader))``.
+
+    The linear law lets the gap float inside a band (weak gap feedback); the IDM envelope (delta 4) brakes
+    where IDM would.
 
     ``k`` is ``kv`` while the leader is faster and ``kv_closing`` (default ``kv``) while it is slower;
     ``g(v) = min(1, v_ref / v)``: above ``v_ref`` the same gap and speed errors get a gentler answer (a

@@ -260,7 +260,10 @@ def test_soft_follower_speed_scaling_and_closing_gain_against_hand_values():
     assert float(soft_follower_accel(close, v8, v8 - 0.3, **(p | {"brake_opening": 0.0}))) < 0.0  # slower: brakes
     # the defaults (kv_closing = kv, no v_ref, brake_opening 1) are the unscaled symmetric law
     d = dataclasses.asdict(SoftFollowerParams())
-    assert d["kv_closing"] == d["kv"] and math.isinf(d["v_ref"]) and d["brake_opening"] == 1.0
+    assert d["kv_closing"] is None and math.isinf(d["v_ref"]) and d["brake_opening"] == 1.0
+    sym = {k: v for k, v in d.items() if k != "kv_closing"}
+    assert torch.allclose(soft_follower_accel(far, v, slow, **sym),
+                          soft_follower_accel(far, v, slow, **(sym | {"kv_closing": d["kv"]})))
     assert set(SOFT_SCALED) <= set(d)
 
 
@@ -275,3 +278,11 @@ def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
     assert not bool(td["next", "collision"].any())
     gap = td["next", "cav", "gap"][:, 200:]  # after a 20-s warm-up: inside the evaluation band
     assert float(gap.min()) > 5.0 and float(gap.max()) < 40.0
+
+
+@pytest.mark.parametrize("name, value", [("brake_opening", 1.5), ("v_ref", 0.0), ("gap_cap", -1.0)])
+def test_soft_controller_rejects_out_of_range_parameters(name, value):
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    with pytest.raises(ValueError, match=name):
+        make_classic_policy("soft", low=-3.0, high=2.0, **{name: value})

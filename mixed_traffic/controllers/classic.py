@@ -34,7 +34,15 @@ class CarFollowingCAV(nn.Module):
         if model not in CLASSIC:
             raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
         self.model = model
-        self.params = {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)}
+        self.params = {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)
+                       if getattr(params, f.name) is not None}  # None: the law's own default (soft kv_closing)
+        if model == "soft":
+            p = self.params
+            for name, ok, allowed in (("brake_opening", 0.0 <= p["brake_opening"] <= 1.0, "[0, 1]"),
+                                      ("v_ref", p["v_ref"] > 0.0, "> 0 (inf: no scaling)"),
+                                      ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)")):
+                if not ok:
+                    raise ValueError(f"soft parameter {name} = {p[name]} is invalid; allowed: {allowed}")
         if gap_max is not None:
             if model != "idm":
                 raise ValueError(f"gap_max is an IDM controller's bound; {model!r} has none")
