@@ -18,7 +18,6 @@ candidate to ``OUT/search.jsonl``; ``physics.SOFT_SCALED`` is the best of such a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -58,18 +57,18 @@ def main(argv=None) -> dict:
     from ring_classical_frontier import factory, run
     from tqdm import tqdm
 
+    from mixed_traffic.controllers.classic import classic_parameters
     from mixed_traffic.evaluation.policies import checkpoint_config
     from mixed_traffic.physics import SoftFollowerParams
 
     torch.set_num_threads(1)
     run_cfg, _ = checkpoint_config(a.checkpoint)
-    fields = sorted(dataclasses.asdict(SoftFollowerParams()))
     d = SoftFollowerParams()
     cur = {k: getattr(d, k) for k in BOUNDS} | {"kv_closing": d.kv, "v_ref": 15.0, "brake_opening": 0.0}
     cur.update(json.loads(a.start) if a.start else {})
-    unknown = set(cur) - set(fields)
-    if unknown:
-        raise SystemExit(f"--start: {sorted(unknown)} are not soft follower parameters; allowed: {fields}")
+    unknown = set(cur) - set(classic_parameters("soft"))
+    if unknown:  # before the reference run, which takes a while
+        raise SystemExit(f"--start: {sorted(unknown)} are not soft parameters; allowed: {classic_parameters('soft')}")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     rng = random.Random(a.seed)

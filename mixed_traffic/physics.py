@@ -104,11 +104,8 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     kv = torch.as_tensor(kv, dtype=v.dtype)
     k = kv if kv_closing is None else torch.where(v_leader < v, torch.as_tensor(kv_closing, dtype=v.dtype), kv)
     linear = ks * (gap - torch.clamp(s0 + h * v, max=gap_cap)) + k * (v_leader - v)
-    v_ref = torch.as_tensor(v_ref, dtype=v.dtype)
-    if not bool(torch.isinf(v_ref).all()):
-        linear = linear * torch.where(torch.isinf(v_ref), torch.ones_like(v), v_ref / torch.maximum(v, v_ref))
-    if not (isinstance(brake_opening, (int, float)) and brake_opening == 1.0):
-        linear = torch.where((v_leader > v) & (linear < 0), linear * brake_opening, linear)
+    linear = linear * (v_ref / v.clamp_min(1e-6)).clamp(max=1.0)  # g(v); v_ref = inf gives 1
+    linear = torch.where((v_leader > v) & (linear < 0), linear * brake_opening, linear)
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 
 
