@@ -10,7 +10,8 @@ stopping, on the 313.65 m ring, human parameters spread +-10 %):
 - ``humans_30pct``: ``random_steps`` with the humans' parameters spread +-30 %.
 
 For each case the policy runs with its safety layer, without it (from the standard start
-and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``) runs
+and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
+run's residual base with the learned residual at zero) runs
 without a layer and, with ``--baselines-with-layer``, again behind the run's safety layer, all
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
 ``OUT/generalization.json`` and prints the table.
@@ -113,7 +114,8 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=2000, help="evaluation seed (default 2000, not a training seed)")
     p.add_argument("--cases", nargs="+", default=None, help="subset of the cases")
     p.add_argument("--baselines", nargs="+", default=["idm"],
-                   help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6')")
+                   help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6'; "
+                        "base: the run's residual base alone)")
     p.add_argument("--baselines-with-layer", action="store_true",
                    help="run every baseline again behind the run's safety layer (rows '<name> + layer')")
     p.add_argument("--out", required=True)
@@ -123,7 +125,12 @@ def main(argv=None) -> dict:
     from omegaconf import open_dict
 
     from mixed_traffic.evaluation.harness import evaluate
-    from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
+    from mixed_traffic.evaluation.policies import (
+        checkpoint_config,
+        classic_factory,
+        policy_factory_from_state,
+        residual_base_factory,
+    )
 
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
@@ -141,12 +148,12 @@ def main(argv=None) -> dict:
             base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
-            results[name][spec] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0], prof)
+            fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
+            results[name][spec] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
             if a.baselines_with_layer:
                 with open_dict(base_cfg):
                     base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
-                results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=classic_factory(spec))[0],
-                                                       prof)
+                results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
         print(name, json.dumps(results[name]["policy"]), flush=True)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -129,6 +129,20 @@ class JerkPenaltyConfig:
 
 
 @dataclass
+class HighSpeedBaseConfig:
+    """A second classical law that takes over the residual's base by speed
+    (``mixed_traffic.controllers.classic.SpeedScheduledCAV``): ``transforms.residual.base`` drives below
+    ``v_low``, this one above ``v_high`` (m/s), a linear blend between. ``base`` null (the default): one
+    base at every speed.
+    """
+
+    base: str | None = None  # "idm", "ovm" or "soft"; null: off
+    params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
+    v_low: float = 10.0
+    v_high: float = 16.0
+
+
+@dataclass
 class ResidualConfig:
     """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual).
 
@@ -136,12 +150,18 @@ class ResidualConfig:
     that stops 6 m behind its leader); unknown names fail when the env is built, naming the allowed ones.
     ``engage_seconds`` (s, >= 0): the residual's weight rises linearly from 0 at the episode's start
     to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
+    ``high_speed`` (:class:`HighSpeedBaseConfig`): a second law that takes the base over by speed.
+    ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
+    false adds the residual to the base's own command and clips the sum once, so where the base asks for
+    more braking than the actuator has, a residual cannot take part of the braking back.
     """
 
     base: str = "idm"  # "idm", "ovm" or "soft" (mixed_traffic.controllers.classic)
     weight: float = 0.5
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
     engage_seconds: float = 0.0
+    high_speed: HighSpeedBaseConfig = field(default_factory=HighSpeedBaseConfig)
+    saturate_base: bool = True
 
 
 @dataclass

@@ -125,7 +125,9 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.intervention_cost.mode": OneOf(("magnitude", "indicator", "both")),
     "transforms.intervention_cost.direction": OneOf(("both", "brake", "push")),
     "transforms.residual.base": OneOf(("idm", "ovm", "soft")),
+    "transforms.residual.high_speed.base": OneOf(("idm", "ovm", "soft", None)),
     "transforms.residual.weight": Real(0),
+    "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -216,6 +218,22 @@ def _walk(node, prefix: str = ""):
         yield prefix[:-1], node
 
 
+def _check_classic_params(cfg: DictConfig, prefix: str) -> None:
+    """``PREFIX.params`` name parameters of the classical model ``PREFIX.base`` and are numbers."""
+    params = OmegaConf.select(cfg, f"{prefix}.params", default=None)
+    if params:
+        from mixed_traffic.controllers.classic import classic_parameters
+
+        model = OmegaConf.select(cfg, f"{prefix}.base", default="idm")
+        allowed = classic_parameters(model)
+        for k, v in params.items():
+            if v is None:  # null: no override (an experiment over an IDM base nulls gap_max to switch base)
+                continue
+            if k not in allowed:
+                raise ConfigError(f"{prefix}.params.{k}", f"is not a {model} parameter", str(allowed))
+            Real()(f"{prefix}.params.{k}", v)
+
+
 def validate_config(cfg: DictConfig) -> DictConfig:
     """Check every rule of :data:`CONFIG_RULES` present in ``cfg`` and that all floats are finite."""
     for path, node in _walk(cfg):
@@ -232,18 +250,15 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and not tc.safety_layer.s_min < tc.safety_layer.s_max):
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
-    params = OmegaConf.select(cfg, "transforms.residual.params", default=None)
-    if params:
-        from mixed_traffic.controllers.classic import classic_parameters
-
-        model = OmegaConf.select(cfg, "transforms.residual.base", default="idm")
-        allowed = classic_parameters(model)
-        for k, v in params.items():
-            if v is None:  # null: no override (an experiment over an IDM base nulls gap_max to switch base)
-                continue
-            if k not in allowed:
-                raise ConfigError(f"transforms.residual.params.{k}", f"is not a {model} parameter", str(allowed))
-            Real()(f"transforms.residual.params.{k}", v)
+    _check_classic_params(cfg, "transforms.residual")
+    if OmegaConf.select(cfg, "transforms.residual.high_speed.base", default=None) is not None:
+        _check_classic_params(cfg, "transforms.residual.high_speed")
+    high = OmegaConf.select(cfg, "transforms.residual.high_speed", default=None)
+    if high is not None and high.get("base") is not None:
+        Real(0)("transforms.residual.high_speed.v_low", high.v_low)
+        if not high.v_low < high.v_high:
+            raise ConfigError("transforms.residual.high_speed.v_high", f"{high.v_high} <= v_low {high.v_low}",
+                              "v_high > v_low (m/s)")
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

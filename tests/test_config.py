@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 from hydra.errors import ConfigCompositionException
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from mixed_traffic.config import compose
 
@@ -219,3 +219,35 @@ def test_soft_experiment_is_the_default_over_the_speed_scaled_soft_base():
     validate_config(compose(["experiment=ring_lagrangian_ppo_soft", "transforms.residual.params.s9=null"]))
     with pytest.raises(ValueError, match=r"transforms\.residual\.params\.gap_max"):
         validate_config(compose(["experiment=ring_lagrangian_ppo_soft", "transforms.residual.params.gap_max=27.0"]))
+
+
+def test_scheduled_experiment_adds_the_high_speed_law_to_the_soft_base():
+    """``experiment=ring_lagrangian_ppo_scheduled`` is ``ring_lagrangian_ppo_soft`` with the default's capped
+    IDM taking the base over from 10 to 16 m/s, a stronger closing gain and the base unclipped; bad
+    ``high_speed`` fields fail naming the field."""
+    from mixed_traffic.controllers.classic import SpeedScheduledCAV
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import validate_config
+
+    sched, soft = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_scheduled", "ring_lagrangian_ppo_soft"))
+    high = OmegaConf.to_container(sched.transforms.residual.high_speed)
+    assert high == {"base": "idm", "params": {"s0": 7.0, "v0": 60.0, "gap_max": 27.0}, "v_low": 10.0, "v_high": 16.0}
+    assert soft.transforms.residual.high_speed.base is None  # off unless set
+    assert sched.transforms.residual.params.kv_closing == 1.0 and sched.transforms.residual.saturate_base is False
+    with open_dict(sched):
+        for key in ("high_speed", "saturate_base"):
+            sched.transforms.residual[key] = soft.transforms.residual[key]
+        sched.transforms.residual.params.kv_closing = soft.transforms.residual.params.kv_closing
+        sched.name = soft.name
+    assert OmegaConf.to_container(sched) == OmegaConf.to_container(soft)
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_scheduled"]))
+    env = make_transformed_env(cfg, num_envs=2, seed=0)
+    bases = [t.base.module for t in env.transform if hasattr(t, "base")]
+    assert len(bases) == 1 and isinstance(bases[0], SpeedScheduledCAV)
+    assert env.rollout(5)["next", "cav", "gap"].shape[:2] == (2, 5)
+    for bad, field in (("transforms.residual.high_speed.v_low=20.0", "high_speed.v_high"),
+                       ("transforms.residual.high_speed.v_low=-1.0", "high_speed.v_low"),
+                       ("transforms.residual.high_speed.params.s9=1.0", "high_speed.params.s9"),
+                       ("transforms.residual.high_speed.base=pid", "high_speed.base")):
+        with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+            validate_config(compose(["experiment=ring_lagrangian_ppo_scheduled", bad]))

@@ -286,3 +286,67 @@ def test_soft_controller_rejects_out_of_range_parameters(name, value):
 
     with pytest.raises(ValueError, match=name):
         make_classic_policy("soft", low=-3.0, high=2.0, **{name: value})
+
+
+def test_speed_scheduled_base_is_each_law_outside_its_band_and_their_blend_inside():
+    """``SpeedScheduledCAV``: the low-speed law below ``v_low``, the high-speed law above ``v_high``, the
+    linear blend between (hand values at 13 m/s: weights 1/2 and 1/2), each law clipped first."""
+    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy
+    from mixed_traffic.physics import SOFT_SCALED
+
+    soft = make_classic_policy("soft", low=-3.0, high=2.0, **SOFT_SCALED)
+    idm = make_classic_policy("idm", low=-3.0, high=2.0, s0=7.0, v0=60.0, gap_max=27.0)
+    sched = speed_scheduled_policy(soft, idm, 10.0, 16.0).module
+    v = torch.tensor([4.0, 9.9, 13.0, 16.0, 25.0])
+    gap, lead = torch.tensor([12.0, 20.0, 30.0, 18.0, 45.0]), v + torch.tensor([0.5, -1.0, 0.0, 2.0, -3.0])
+    a_soft, a_idm = soft.module(gap, v, lead), idm.module(gap, v, lead)
+    assert not torch.allclose(a_soft, a_idm, atol=1e-3)  # the two laws differ at every test state
+    want = torch.cat([a_soft[:2], 0.5 * (a_soft[2:3] + a_idm[2:3]), a_idm[3:]])
+    assert torch.allclose(sched(gap, v, lead), want, atol=1e-6)
+    with pytest.raises(ValueError, match="v_low"):
+        speed_scheduled_policy(soft, idm, 16.0, 10.0)
+
+
+def test_speed_scheduled_base_drives_the_ring_without_a_layer_across_its_blend():
+    """The scheduled base of ``experiment=ring_lagrangian_ppo_scheduled`` alone (the learned residual at
+    zero) on the evaluation's random steps (5-20 m/s), which cross its 10-16 m/s blend: no collision, gaps in the
+    band after the warm-up."""
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import residual_base
+
+    env = make_env("ring", batch_size=4, seed=1, profile="random_steps",
+                   profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0})
+    td = env.rollout(1500, residual_base(compose(["experiment=ring_lagrangian_ppo_scheduled"]).transforms.residual, env))
+    speed = td["next", "cav", "speed"][:, 200:]
+    assert float(speed.min()) < 10.0 and float(speed.max()) > 16.0  # both laws and the blend drove
+    assert not bool(td["next", "collision"].any())
+    gap = td["next", "cav", "gap"][:, 200:]
+    assert float(gap.min()) > 5.0 and float(gap.max()) < 40.0
+
+
+def test_unsaturated_base_keeps_braking_beyond_the_bound_when_a_residual_softens_it():
+    """``transforms.residual.saturate_base=false``: closing at 12 m/s on a standing leader 12 m ahead the base
+    asks for more than the 3 m/s^2 of braking the CAV has; a residual of +0.5 m/s^2 then still executes
+    -3, where with the base clipped first it executes -2.5 (it takes back braking the CAV needs)."""
+    from tensordict import TensorDict
+
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import make_transformed_env
+    from transforms import ResidualAction
+
+    def executed(saturate: bool):
+        cfg = compose(["experiment=ring_lagrangian_ppo_scheduled", f"transforms.residual.saturate_base={saturate}"])
+        env = make_transformed_env(cfg, num_envs=1, seed=0)
+        (res,) = [t for t in env.transform if isinstance(t, ResidualAction)]
+        res.engage_seconds = 0.0
+        td = TensorDict({("cav", "gap"): torch.tensor([[12.0]]), ("cav", "speed"): torch.tensor([[12.0]]),
+                         ("cav", "leader_speed"): torch.tensor([[0.0]]), "action": torch.tensor([[1.0]])},
+                        batch_size=[1])
+        out = res._inv_call(td)
+        return float(out["residual", "base_action"]), float(out["action"])
+
+    raw, a_free = executed(False)
+    clipped, a_sat = executed(True)
+    assert raw < -3.5 and clipped == pytest.approx(-3.0)
+    assert a_free == pytest.approx(-3.0) and a_sat == pytest.approx(-2.5)

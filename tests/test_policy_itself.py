@@ -418,3 +418,19 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     assert rows["idm + layer"]["max_head_gap"] < rows["idm"]["max_head_gap"]
     assert "idm + layer" in json.loads((out / "generalization.json").read_text())["results"]["fast_steps"]
     assert "| fast_steps | IDM, + layer |" in (out / "generalization.md").read_text()
+
+
+def test_residual_base_factory_drives_the_runs_base_alone_and_refuses_a_run_without_one():
+    """``--baselines base`` of benchmarks/ring_generalization.py: the run's residual base with the residual
+    at zero (here the scheduled base, which the generalization table compares the policy with); a run
+    whose chain has no residual fails naming the missing transform instead of driving a default IDM."""
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.classic import SpeedScheduledCAV
+    from mixed_traffic.evaluation.policies import residual_base_factory
+
+    env = make_env("ring", batch_size=2, seed=0)
+    base = residual_base_factory(compose(["experiment=ring_lagrangian_ppo_scheduled"]))(env)
+    assert isinstance(base.module, SpeedScheduledCAV)
+    assert not bool(env.rollout(100, base)["next", "collision"].any())
+    with pytest.raises(ValueError, match="residual_idm"):
+        residual_base_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))

@@ -60,6 +60,45 @@ class CarFollowingCAV(nn.Module):
         return a.clamp(self.low, self.high)
 
 
+class SpeedScheduledCAV(nn.Module):
+    """``w(v) low(gap, v, v_lead) + (1 - w(v)) high(gap, v, v_lead)``, ``w`` falling linearly from 1 at
+    ``v_low`` to 0 at ``v_high`` (m/s): one law below ``v_low``, the other above ``v_high``.
+
+    Gain scheduling by speed, the classical way of joining two controllers that each hold only over part
+    of the speed range (a follower that lets the gap float at low speed, one that keeps it short at high
+    speed). Both laws are clipped to the same bounds, so the blend is too. TorchRL has no such module.
+    """
+
+    def __init__(self, low: nn.Module, high: nn.Module, v_low: float, v_high: float):
+        super().__init__()
+        if not 0.0 <= v_low < v_high:
+            raise ValueError(f"speed schedule v_low = {v_low}, v_high = {v_high} is invalid; "
+                             "allowed: 0 <= v_low < v_high (m/s)")
+        self.low, self.high = low, high
+        self.v_low, self.v_high = float(v_low), float(v_high)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        w = ((self.v_high - speed) / (self.v_high - self.v_low)).clamp(0.0, 1.0)
+        return w * self.low(gap, speed, leader_speed) + (1.0 - w) * self.high(gap, speed, leader_speed)
+
+
+def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low: float,
+                           v_high: float) -> TensorDictModule:
+    """Two policies of :func:`make_classic_policy` joined by speed (:class:`SpeedScheduledCAV`): ``low``
+    drives below ``v_low``, ``high`` above ``v_high``, a linear blend between.
+
+    >>> from mixed_traffic import make_env
+    >>> from mixed_traffic.physics import SOFT_SCALED
+    >>> env = make_env("ring", batch_size=2, seed=0)
+    >>> pol = speed_scheduled_policy(make_classic_policy("soft", env, **SOFT_SCALED),
+    ...                              make_classic_policy("idm", env, s0=7.0, v0=60.0, gap_max=27.0), 10.0, 16.0)
+    >>> bool(env.rollout(50, pol)["next", "collision"].any())
+    False
+    """
+    return TensorDictModule(SpeedScheduledCAV(low.module, high.module, v_low, v_high),
+                            in_keys=list(low.in_keys), out_keys=list(low.out_keys))
+
+
 def action_bounds(env) -> tuple[float, float]:
     """``(low, high)`` of the CAV acceleration command of ``env`` (first element of its action spec)."""
     spec = env.action_spec
@@ -102,4 +141,5 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
                             in_keys=[("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")], out_keys=["action"])
 
 
-__all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "CarFollowingCAV", "CLASSIC"]
+__all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
+           "SpeedScheduledCAV", "CLASSIC"]

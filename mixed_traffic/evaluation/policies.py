@@ -78,6 +78,18 @@ def policy_factory_from_state(cfg: DictConfig, state: dict):
     return factory
 
 
+def residual_base_factory(cfg):
+    """``factory(env)`` for the classical base of ``cfg.transforms.residual`` driving alone (the learned
+    residual at zero): what the policy adds is measured against it on the same episodes."""
+    from mixed_traffic.training.builders import residual_base
+
+    if "residual_idm" not in cfg.transforms.chain:
+        raise ValueError(f"the run has no residual base: transforms.chain {list(cfg.transforms.chain)} lacks "
+                         "residual_idm")
+    rcfg = cfg.transforms.residual
+    return lambda env: residual_base(rcfg, env)
+
+
 def classic_factory(name: str):
     """``factory(env)`` for ``controller=NAME`` or ``NAME:param=value[;param=value]`` (``"idm:s0=6"``)."""
     from mixed_traffic.controllers.classic import make_classic_policy

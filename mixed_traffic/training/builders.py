@@ -120,16 +120,33 @@ def _jerk_limit(tcfg, env):
 
 
 def _residual_idm(tcfg, env):
-    from mixed_traffic.controllers.classic import make_classic_policy
     from transforms import ResidualAction
 
     r = tcfg.residual
     try:
-        params = {k: v for k, v in dict(r.get("params") or {}).items() if v is not None}  # null: the model's own
-        base = make_classic_policy(r.base, env, **params)
+        base = residual_base(r, env, saturate=r.get("saturate_base", True))
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0))
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
+
+
+def residual_base(rcfg, env, *, saturate: bool = True):
+    """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
+    parameter: the model's own), joined by speed to ``high_speed`` when that is set. ``saturate=False``:
+    its command is not clipped to the env's action bounds (``ResidualAction`` clips the sum)."""
+    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy
+
+    bounds = {} if saturate else {"low": -math.inf, "high": math.inf}
+
+    def law(node):
+        params = {k: v for k, v in dict(node.get("params") or {}).items() if v is not None}
+        return make_classic_policy(node.base, env, **bounds, **params)
+
+    base = law(rcfg)
+    high = rcfg.get("high_speed")
+    if high is not None and high.get("base") is not None:
+        base = speed_scheduled_policy(base, law(high), high.v_low, high.v_high)
+    return base
 
 
 def _residual_nnmpc(tcfg, env):
