@@ -66,7 +66,8 @@ class SpeedScheduledCAV(nn.Module):
 
     Gain scheduling by speed, the classical way of joining two controllers that each hold only over part
     of the speed range (a follower that lets the gap float at low speed, one that keeps it short at high
-    speed). Both laws are clipped to the same bounds, so the blend is too. TorchRL has no such module.
+    speed). A convex blend, so with both laws clipped to the same bounds the blend stays within them.
+    TorchRL has no such module.
     """
 
     def __init__(self, low: nn.Module, high: nn.Module, v_low: float, v_high: float):
