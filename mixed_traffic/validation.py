@@ -126,6 +126,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.intervention_cost.direction": OneOf(("both", "brake", "push")),
     "transforms.residual.base": OneOf(("idm", "ovm", "soft")),
     "transforms.residual.high_speed.base": OneOf(("idm", "ovm", "soft", None)),
+    "transforms.residual.high_speed.v_low": Real(0),
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
@@ -251,11 +252,9 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
     _check_classic_params(cfg, "transforms.residual")
-    if OmegaConf.select(cfg, "transforms.residual.high_speed.base", default=None) is not None:
-        _check_classic_params(cfg, "transforms.residual.high_speed")
     high = OmegaConf.select(cfg, "transforms.residual.high_speed", default=None)
-    if high is not None and high.get("base") is not None:
-        Real(0)("transforms.residual.high_speed.v_low", high.v_low)
+    if high is not None and high.get("base") is not None:  # null base: the schedule is off
+        _check_classic_params(cfg, "transforms.residual.high_speed")
         if not high.v_low < high.v_high:
             raise ConfigError("transforms.residual.high_speed.v_high", f"{high.v_high} <= v_low {high.v_low}",
                               "v_high > v_low (m/s)")
