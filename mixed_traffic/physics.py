@@ -77,6 +77,7 @@ class SoftFollowerParams:
     v_ref: float = math.inf  # above this speed (m/s) both gains fall as v_ref / v
     gap_cap: float = math.inf  # the linear law's desired gap s0 + h v is capped here (m)
     brake_opening: float = 1.0  # share of the linear law's braking kept while the leader is faster (0-1)
+    kv_closing_near: float = 0.0  # closing gain added at gap 0, falling linearly to 0 at the desired gap (1/s)
 
 
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
@@ -89,7 +90,8 @@ SOFT_SCALED = dict(ks=0.127, kv=0.805, kv_closing=0.71, s0=10.322, h=0.86, T=0.4
 
 def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv: Num, s0: Num, h: Num, T: Num,
                         s0_idm: Num, a: Num, b: Num, v0: Num, kv_closing: Num | None = None,
-                        v_ref: Num = math.inf, gap_cap: Num = math.inf, brake_opening: Num = 1.0, **_) -> Tensor:
+                        v_ref: Num = math.inf, gap_cap: Num = math.inf, brake_opening: Num = 1.0,
+                        kv_closing_near: Num = 0.0, **_) -> Tensor:
     """``min(g(v) [ks (gap - min(s0 + h v, gap_cap)) + k (v_leader - v)], IDM(gap, v, v_leader))``.
 
     The linear law lets the gap float inside a band (weak gap feedback); the IDM envelope (delta 4) brakes
@@ -100,10 +102,18 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     time headway's room grows with speed), which lowers the jerk of answering a fast head's steps.
     While the leader is faster the gap is already opening: ``brake_opening`` (1: all, 0: none) is the
     share of the linear law's braking kept there; the envelope still brakes where IDM would.
+    ``kv_closing_near`` strengthens the answer to a slower leader only inside the desired gap
+    ``s* = min(s0 + h v, gap_cap)``: the closing gain is ``kv_closing + kv_closing_near (1 - gap / s*)``
+    there (``kv_closing`` alone at or beyond ``s*``). A head braking hard pulls the gap inside ``s*`` early
+    and gets the stronger answer; the everyday small oscillations around ``s*`` get little of it.
     """
     kv = torch.as_tensor(kv, dtype=v.dtype)
-    k = kv if kv_closing is None else torch.where(v_leader < v, torch.as_tensor(kv_closing, dtype=v.dtype), kv)
-    linear = ks * (gap - torch.clamp(s0 + h * v, max=gap_cap)) + k * (v_leader - v)
+    desired = torch.clamp(s0 + h * v, max=gap_cap)
+    k_close = torch.as_tensor(kv if kv_closing is None else kv_closing, dtype=v.dtype)
+    if kv_closing_near:
+        k_close = k_close + kv_closing_near * (1.0 - gap / desired.clamp_min(1e-6)).clamp(0.0, 1.0)
+    k = torch.where(v_leader < v, k_close, kv)
+    linear = ks * (gap - desired) + k * (v_leader - v)
     linear = linear * (v_ref / v.clamp_min(1e-6)).clamp(max=1.0)  # g(v); v_ref = inf gives 1
     linear = torch.where((v_leader > v) & (linear < 0), linear * brake_opening, linear)
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))

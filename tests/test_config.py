@@ -251,3 +251,24 @@ def test_scheduled_experiment_adds_the_high_speed_law_to_the_soft_base():
                        ("transforms.residual.high_speed.base=pid", "high_speed.base")):
         with pytest.raises(ValueError, match=field.replace(".", r"\.")):
             validate_config(compose(["experiment=ring_lagrangian_ppo_scheduled", bad]))
+
+
+def test_tight_experiment_reshapes_only_the_soft_laws_speed_gains():
+    """``experiment=ring_lagrangian_ppo_tight`` is ``ring_lagrangian_ppo_scheduled`` with the soft follower's
+    kv, kv_closing and kv_closing_near changed and nothing else; a negative ``kv_closing_near`` fails at
+    the build, naming it."""
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import validate_config
+
+    tight, sched = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_tight", "ring_lagrangian_ppo_scheduled"))
+    changed = {"kv": 1.5, "kv_closing": 0.71, "kv_closing_near": 1.0}
+    assert {k: tight.transforms.residual.params[k] for k in changed} == changed
+    with open_dict(tight):
+        for k in changed:
+            tight.transforms.residual.params.pop(k)
+            sched.transforms.residual.params.pop(k, None)
+        tight.name = sched.name
+    assert OmegaConf.to_container(tight) == OmegaConf.to_container(sched)
+    bad = validate_config(compose(["experiment=ring_lagrangian_ppo_tight", "transforms.residual.params.kv_closing_near=-1"]))
+    with pytest.raises(ValueError, match="kv_closing_near"):
+        make_transformed_env(bad, num_envs=1, seed=0)

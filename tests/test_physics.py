@@ -267,6 +267,28 @@ def test_soft_follower_speed_scaling_and_closing_gain_against_hand_values():
     assert set(SOFT_SCALED) <= set(d)
 
 
+def test_soft_follower_closing_gain_near_the_leader_against_hand_values():
+    """``kv_closing_near``: the closing gain grows linearly as the gap falls inside the desired gap
+    ``s0 + h v`` (hand values at a quarter and at all of it), and nothing changes at or beyond it or
+    while the leader is faster."""
+    from mixed_traffic.physics import SoftFollowerParams, idm_accel, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams()) | {"kv_closing": 0.5, "s0_idm": 1.0, "T": 0.1, "b": 9.0}
+    v = torch.tensor([8.0, 8.0])
+    desired = p["s0"] + p["h"] * 8.0
+    gap = torch.tensor([0.75 * desired, desired + 3.0])  # a quarter inside the desired gap; beyond it
+    slow = v - 1.0
+    near = soft_follower_accel(gap, v, slow, **(p | {"kv_closing_near": 2.0}))
+    expect = p["ks"] * (gap - desired) - torch.tensor([0.5 + 2.0 * 0.25, 0.5])
+    envelope = idm_accel(gap, v, slow, v0=p["v0"], T=p["T"], a=p["a"], b=p["b"], delta=4.0, s0=p["s0_idm"])
+    assert bool((envelope > expect).all())  # the linear law is what binds
+    assert torch.allclose(near, expect, atol=1e-6)
+    assert torch.allclose(near[1:], soft_follower_accel(gap, v, slow, **p)[1:])
+    fast = v + 1.0  # the leader faster: kv, untouched
+    assert torch.allclose(soft_follower_accel(gap, v, fast, **(p | {"kv_closing_near": 2.0})),
+                          soft_follower_accel(gap, v, fast, **p))
+
+
 def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
     from mixed_traffic import make_env
     from mixed_traffic.controllers.classic import make_classic_policy
@@ -280,7 +302,8 @@ def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
     assert float(gap.min()) > 5.0 and float(gap.max()) < 40.0
 
 
-@pytest.mark.parametrize("name, value", [("brake_opening", 1.5), ("v_ref", 0.0), ("gap_cap", -1.0)])
+@pytest.mark.parametrize("name, value", [("brake_opening", 1.5), ("v_ref", 0.0), ("gap_cap", -1.0),
+                                         ("kv_closing_near", -0.5)])
 def test_soft_controller_rejects_out_of_range_parameters(name, value):
     from mixed_traffic.controllers.classic import make_classic_policy
 

@@ -434,3 +434,23 @@ def test_residual_base_factory_drives_the_runs_base_alone_and_refuses_a_run_with
     assert not bool(env.rollout(100, base)["next", "collision"].any())
     with pytest.raises(ValueError, match="residual_idm"):
         residual_base_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))
+
+
+def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_margin():
+    """benchmarks/ring_base_probe.py builds the experiment's base with the ``--set`` overrides: on a head
+    braking to standstill the closing gain near the leader (``kv_closing_near``) stops the base alone
+    further back than the same base without it; a case that does not exist fails naming the allowed ones."""
+    import importlib.util
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("ring_base_probe", os.path.join(root, "benchmarks", "ring_base_probe.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    args = ["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_standstill", "--episodes", "1"]
+    near = mod.main(args)["base"]["brake_to_standstill"]
+    off = mod.main(args + ["--set", "transforms.residual.params.kv_closing_near=0.0"])["base"]["brake_to_standstill"]
+    assert near["collisions"] == off["collisions"] == 0
+    assert near["min_gap"] > off["min_gap"] + 0.5
+    with pytest.raises(SystemExit, match="stop_and_go"):
+        mod.main(["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_stop"])

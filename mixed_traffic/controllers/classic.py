@@ -40,6 +40,7 @@ class CarFollowingCAV(nn.Module):
             p = self.params
             for name, ok, allowed in (("brake_opening", 0.0 <= p["brake_opening"] <= 1.0, "[0, 1]"),
                                       ("v_ref", p["v_ref"] > 0.0, "> 0 (inf: no scaling)"),
+                                      ("kv_closing_near", p["kv_closing_near"] >= 0.0, ">= 0 (0: off)"),
                                       ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)")):
                 if not ok:
                     raise ValueError(f"soft parameter {name} = {p[name]} is invalid; allowed: {allowed}")
