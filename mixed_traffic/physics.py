@@ -109,9 +109,8 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     """
     kv = torch.as_tensor(kv, dtype=v.dtype)
     desired = torch.clamp(s0 + h * v, max=gap_cap)
-    k_close = torch.as_tensor(kv if kv_closing is None else kv_closing, dtype=v.dtype)
-    if kv_closing_near:
-        k_close = k_close + kv_closing_near * (1.0 - gap / desired.clamp_min(1e-6)).clamp(0.0, 1.0)
+    inside = (1.0 - gap / desired.clamp_min(1e-6)).clamp(0.0, 1.0)  # 0 at or beyond the desired gap, 1 at 0
+    k_close = (kv if kv_closing is None else kv_closing) + kv_closing_near * inside
     k = torch.where(v_leader < v, k_close, kv)
     linear = ks * (gap - desired) + k * (v_leader - v)
     linear = linear * (v_ref / v.clamp_min(1e-6)).clamp(max=1.0)  # g(v); v_ref = inf gives 1
