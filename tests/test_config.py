@@ -261,7 +261,7 @@ def test_tight_experiment_reshapes_only_the_soft_laws_speed_gains():
     from mixed_traffic.validation import validate_config
 
     tight, sched = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_tight", "ring_lagrangian_ppo_scheduled"))
-    changed = {"kv": 1.5, "kv_closing": 0.71, "kv_closing_near": 1.0}
+    changed = {"kv": 1.5, "kv_closing": 0.71, "kv_closing_near": 0.75}
     assert {k: tight.transforms.residual.params[k] for k in changed} == changed
     with open_dict(tight):
         for k in changed:
