@@ -29,25 +29,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 NAMES = ("stop_and_go", "brake_to_standstill", "fast_steps", "random_steps", "emergency_brake", "eudc", "sine")
 
 
-def run(cfg, factory, names, *, seed: int, episodes: int) -> dict:
-    from omegaconf import open_dict
-    from ring_generalization import named_config
-
-    from mixed_traffic.evaluation.harness import evaluate
-
-    out = {}
-    for name in names:
-        c, prof = named_config(cfg, name, episodes=episodes, seconds=200.0, seed=seed)
-        with open_dict(c):
-            c.transforms.chain, c.eval.without_layer, c.eval.seed = ["non_negative_reward"], False, seed
-        rep = evaluate(c, policy_factory=factory)[0]
-        m = rep["profiles"][prof]["metrics"]
-        out[name] = {"collisions": rep["profiles"][prof]["collisions"], "min_gap": m["min_gap_after"]["min"],
-                     "max_head_gap": m["max_head_gap"]["max"], "steady_rmse": m["speed_rmse_steady"]["mean"],
-                     "jerk": m["mean_abs_jerk"]["mean"], "return": m["return"]["mean"]}
-    return out
-
-
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--experiment", required=True, help="a ring experiment with a residual base")
@@ -62,6 +43,7 @@ def main(argv=None) -> dict:
         raise SystemExit(f"--cases: {sorted(unknown)} are not cases; allowed: {list(NAMES)}")
 
     import torch
+    from ring_classical_frontier import run
 
     from mixed_traffic.config import compose
     from mixed_traffic.evaluation.policies import classic_factory, residual_base_factory
@@ -70,8 +52,8 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     cfg = validate_config(compose([f"experiment={a.experiment}", *a.set]))
     factory = residual_base_factory(cfg)  # fails here, naming residual_idm, for a chain without a base
-    ref = run(cfg, classic_factory("idm"), a.cases, seed=a.seed, episodes=a.episodes)
-    res = run(cfg, factory, a.cases, seed=a.seed, episodes=a.episodes)
+    ref, res = (run(cfg, fac, episodes=a.episodes, seed=a.seed, names=a.cases, profiles_at_seed=True)
+                for fac in (classic_factory("idm"), factory))
     print(f"{a.experiment} {' '.join(a.set)}: the base alone, seed {a.seed}, {a.episodes} episodes a case")
     for name, r in res.items():
         q = ref[name]

@@ -58,17 +58,21 @@ def factory(family: str, params: dict | None):
     return classic_factory(f"{family}:" + ";".join(f"{k}={v}" for k, v in params.items()))
 
 
-def run(run_cfg, fac, *, episodes: int, seed: int = 2000) -> dict:
+def run(run_cfg, fac, *, episodes: int, seed: int = 2000, names=CASES, profiles_at_seed: bool = False) -> dict:
+    """One row per case of ``names``, no layer. Held-out cases run at ``seed``; the run's evaluation
+    profiles at the run's own ``eval.seed`` unless ``profiles_at_seed``."""
     from omegaconf import open_dict
     from ring_generalization import named_config
 
     from mixed_traffic.evaluation.harness import evaluate
 
     out = {}
-    for name in CASES:
+    for name in names:
         cfg, prof = named_config(run_cfg, name, episodes=episodes, seconds=200.0, seed=seed)
         with open_dict(cfg):
             cfg.transforms.chain, cfg.eval.without_layer = ["non_negative_reward"], False
+            if profiles_at_seed:
+                cfg.eval.seed = seed
         rep = evaluate(cfg, policy_factory=fac)[0]
         m = rep["profiles"][prof]["metrics"]
         out[name] = {"collisions": rep["profiles"][prof]["collisions"], "min_gap": m["min_gap_after"]["min"],
