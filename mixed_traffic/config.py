@@ -150,7 +150,12 @@ class ResidualConfig:
     that stops 6 m behind its leader); unknown names fail when the env is built, naming the allowed ones.
     ``engage_seconds`` (s, >= 0): the residual's weight rises linearly from 0 at the episode's start
     to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
-    ``high_speed`` (:class:`HighSpeedBaseConfig`): a second law that takes the base over by speed.
+    ``high_speed`` (:class:`HighSpeedBaseConfig`): a second law that takes the base over by speed;
+    ``top_speed`` (the same fields): a third that takes over from the first two (scheduled as one) above
+    its own ``v_low`` / ``v_high``.
+    ``fade_speeds`` (``[v_full, v_zero]`` m/s, or null): the residual's weight falls linearly from full at
+    the car's own speed ``v_full`` to 0 at ``v_zero``, so that above the speeds the policy trained on the
+    base drives (``transforms.ResidualAction``).
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -161,6 +166,8 @@ class ResidualConfig:
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
     engage_seconds: float = 0.0
     high_speed: HighSpeedBaseConfig = field(default_factory=HighSpeedBaseConfig)
+    top_speed: HighSpeedBaseConfig = field(default_factory=HighSpeedBaseConfig)
+    fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     saturate_base: bool = True
 
 

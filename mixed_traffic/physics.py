@@ -78,6 +78,9 @@ class SoftFollowerParams:
     gap_cap: float = math.inf  # the linear law's desired gap s0 + h v is capped here (m)
     brake_opening: float = 1.0  # share of the linear law's braking kept while the leader is faster (0-1)
     kv_closing_near: float = 0.0  # closing gain added at gap 0, falling linearly to 0 at the desired gap (1/s)
+    match_gap_max: float = math.inf  # match a faster leader's speed at constant acceleration before this gap (m)
+    match_gap_min: float = -math.inf  # match a slower leader's speed at constant deceleration above this gap (m)
+    ks_edge: float = 0.0  # gap gain added beyond match_gap_max and below match_gap_min (1/s^2)
 
 
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
@@ -91,7 +94,8 @@ SOFT_SCALED = dict(ks=0.127, kv=0.805, kv_closing=0.71, s0=10.322, h=0.86, T=0.4
 def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv: Num, s0: Num, h: Num, T: Num,
                         s0_idm: Num, a: Num, b: Num, v0: Num, kv_closing: Num | None = None,
                         v_ref: Num = math.inf, gap_cap: Num = math.inf, brake_opening: Num = 1.0,
-                        kv_closing_near: Num = 0.0, **_) -> Tensor:
+                        kv_closing_near: Num = 0.0, match_gap_max: Num = math.inf,
+                        match_gap_min: Num = -math.inf, ks_edge: Num = 0.0, **_) -> Tensor:
     """``min(g(v) [ks (gap - min(s0 + h v, gap_cap)) + k (v_leader - v)], IDM(gap, v, v_leader))``.
 
     The linear law lets the gap float inside a band (weak gap feedback); the IDM envelope (delta 4) brakes
@@ -106,6 +110,15 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     ``s* = min(s0 + h v, gap_cap)``: the closing gain is ``kv_closing + kv_closing_near (1 - gap / s*)``
     there (``kv_closing`` alone at or beyond ``s*``). A head braking hard pulls the gap inside ``s*`` early
     and gets the stronger answer; the everyday small oscillations around ``s*`` get little of it.
+
+    ``match_gap_max`` / ``match_gap_min`` (m; off by default) keep the gap inside a band with the least
+    constant acceleration: the law adds ``dv |dv| / (2 room)``, ``dv = v_leader - v``, the acceleration
+    that matches the leader's speed just as the gap reaches ``match_gap_max`` (leader faster; ``room =
+    match_gap_max - gap``) or falls to ``match_gap_min`` (leader slower; ``room = gap - match_gap_min``),
+    room floored at 1 m. Followed exactly it is constant through the answer (``dv^2 / room`` does not
+    change), so a step of the leader costs one rise and one fall of the command, and a small step a small
+    one. ``ks_edge`` (1/s^2) adds a gap gain beyond the two gaps only, which brings a gap back inside
+    them; with ``ks`` 0 the gap floats freely between them.
     """
     kv = torch.as_tensor(kv, dtype=v.dtype)
     desired = torch.clamp(s0 + h * v, max=gap_cap)
@@ -113,8 +126,13 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     k_close = (kv if kv_closing is None else kv_closing) + kv_closing_near * inside
     k = torch.where(v_leader < v, k_close, kv)
     linear = ks * (gap - desired) + k * (v_leader - v)
-    linear = linear * (v_ref / v.clamp_min(1e-6)).clamp(max=1.0)  # g(v); v_ref = inf gives 1
+    linear = linear / (v / v_ref).clamp_min(1.0)  # g(v) = min(1, v_ref / v); v_ref = inf gives 1 (and a finite gradient)
     linear = torch.where((v_leader > v) & (linear < 0), linear * brake_opening, linear)
+    dv = v_leader - v
+    room = torch.where(dv > 0, match_gap_max - gap, gap - match_gap_min).clamp_min(1.0)  # inf: no term
+    linear = linear + dv * dv.abs() / (2.0 * room)
+    beyond = (gap - match_gap_max).clamp_min(0.0) - (match_gap_min - gap).clamp_min(0.0)
+    linear = linear + ks_edge * torch.nan_to_num(beyond)  # 0 inside the band (and with no band)
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 
 

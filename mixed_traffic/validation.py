@@ -127,6 +127,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.base": OneOf(("idm", "ovm", "soft")),
     "transforms.residual.high_speed.base": OneOf(("idm", "ovm", "soft", None)),
     "transforms.residual.high_speed.v_low": Real(0),
+    "transforms.residual.top_speed.base": OneOf(("idm", "ovm", "soft", None)),
+    "transforms.residual.top_speed.v_low": Real(0),
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
@@ -252,12 +254,19 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
     _check_classic_params(cfg, "transforms.residual")
-    high = OmegaConf.select(cfg, "transforms.residual.high_speed", default=None)
-    if high is not None and high.get("base") is not None:  # null base: the schedule is off
-        _check_classic_params(cfg, "transforms.residual.high_speed")
-        if not high.v_low < high.v_high:
-            raise ConfigError("transforms.residual.high_speed.v_high", f"{high.v_high} <= v_low {high.v_low}",
-                              "v_high > v_low (m/s)")
+    fade = OmegaConf.select(cfg, "transforms.residual.fade_speeds", default=None)
+    if fade is not None and not (OmegaConf.is_list(fade) and len(fade) == 2
+                                 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in fade)
+                                 and 0 <= fade[0] < fade[1]):
+        raise ConfigError("transforms.residual.fade_speeds", repr(fade),
+                          "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
+    for key in ("high_speed", "top_speed"):
+        node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
+        if node is not None and node.get("base") is not None:  # null base: the schedule is off
+            _check_classic_params(cfg, f"transforms.residual.{key}")
+            if not node.v_low < node.v_high:
+                raise ConfigError(f"transforms.residual.{key}.v_high", f"{node.v_high} <= v_low {node.v_low}",
+                                  "v_high > v_low (m/s)")
     pol = cfg.get("policy")
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",

@@ -272,3 +272,35 @@ def test_tight_experiment_reshapes_only_the_soft_laws_speed_gains():
     bad = validate_config(compose(["experiment=ring_lagrangian_ppo_tight", "transforms.residual.params.kv_closing_near=-1"]))
     with pytest.raises(ValueError, match="kv_closing_near"):
         make_transformed_env(bad, num_envs=1, seed=0)
+
+
+def test_band_experiment_adds_a_third_law_and_the_fade_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_band`` is ``ring_lagrangian_ppo_tight`` with ``top_speed`` (the
+    soft follower's band terms above 20 m/s) and ``fade_speeds`` set and nothing else; both reach the
+    built base and transform; a reversed speed pair fails at start-up, naming the field."""
+    from mixed_traffic.controllers.classic import SpeedScheduledCAV
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import ConfigError, validate_config
+    from transforms import ResidualAction
+
+    band, tight = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_band", "ring_lagrangian_ppo_tight"))
+    top = band.transforms.residual.top_speed
+    assert (top.base, top.v_low, top.v_high) == ("soft", 18.0, 20.0)
+    assert {"match_gap_min", "match_gap_max", "ks_edge"} <= set(top.params)
+    assert list(band.transforms.residual.fade_speeds) == [18.0, 20.0]
+    with open_dict(band):
+        band.transforms.residual.top_speed = tight.transforms.residual.top_speed
+        band.transforms.residual.fade_speeds = None
+        band.name = tight.name
+    assert OmegaConf.to_container(band) == OmegaConf.to_container(tight)
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_band"]))
+    res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    assert res[0].fade_speeds == (18.0, 20.0)
+    outer = res[0].base.module
+    assert isinstance(outer, SpeedScheduledCAV) and isinstance(outer.low, SpeedScheduledCAV)  # three laws
+    assert (outer.v_low, outer.v_high) == (18.0, 20.0) and outer.high.params["match_gap_max"] == 32.0
+    for bad, field in (("transforms.residual.fade_speeds=[20.0,18.0]", "transforms.residual.fade_speeds"),
+                       ("transforms.residual.top_speed.v_high=10.0", "transforms.residual.top_speed.v_high"),
+                       ("transforms.residual.top_speed.params.ks_edge=x", "transforms.residual.top_speed.params.ks_edge")):
+        with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+            validate_config(compose(["experiment=ring_lagrangian_ppo_band", bad]))

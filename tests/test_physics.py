@@ -289,6 +289,50 @@ def test_soft_follower_closing_gain_near_the_leader_against_hand_values():
                           soft_follower_accel(gap, v, fast, **p))
 
 
+def test_soft_follower_band_terms_against_hand_values_and_a_constant_acceleration_answer():
+    """``match_gap_max`` / ``match_gap_min`` add ``dv |dv| / (2 room)`` (hand values each way), ``ks_edge``
+    acts beyond the band only, and a follower driven by the term alone answers a leader's step with one
+    constant acceleration that matches its speed as the gap reaches ``match_gap_max``."""
+    from mixed_traffic.physics import SoftFollowerParams, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams()) | {"T": 0.3, "s0_idm": 2.0, "b": 9.0}  # the envelope far off
+    band = {"match_gap_min": 10.0, "match_gap_max": 34.0}
+    gap, v = torch.tensor([20.0, 20.0]), torch.tensor([20.0, 20.0])
+    lead = torch.tensor([22.0, 18.0])  # faster: room 34 - 20 = 14; slower: room 20 - 10 = 10
+    off = soft_follower_accel(gap, v, lead, **p)
+    on = soft_follower_accel(gap, v, lead, **(p | band))
+    assert torch.allclose(on - off, torch.tensor([4.0 / 28.0, -4.0 / 20.0]), atol=1e-6)
+    # ks_edge: nothing inside the band, ks_edge * (gap - 34) beyond it (the leader as fast: no match term)
+    g2 = torch.tensor([20.0, 38.0])
+    same = torch.tensor([20.0, 20.0])
+    edge = soft_follower_accel(g2, v, same, **(p | band | {"ks_edge": 0.1}))
+    assert torch.allclose(edge - soft_follower_accel(g2, v, same, **(p | band)), torch.tensor([0.0, 0.4]), atol=1e-6)
+    # the term alone (no gap or speed gain) against a leader 5 m/s faster, 14 m of room: 25 / 28 m/s^2
+    # until the room is down to the 1-m floor (the last sqrt(25 / 14) m/s of the step)
+    q = p | band | {"ks": 0.0, "kv": 0.0, "kv_closing": 0.0}
+    dt, s, vf, vl = 0.01, torch.tensor([20.0]), torch.tensor([20.0]), torch.tensor([25.0])
+    accs, gaps = [], []
+    while float(vl - vf) > 1.4:
+        a = soft_follower_accel(s, vf, vl, **q)
+        accs.append(float(a))
+        s, vf = s + (vl - vf) * dt - 0.5 * a * dt * dt, vf + a * dt
+        gaps.append(float(s))
+    assert max(abs(x - 25.0 / 28.0) for x in accs) < 1e-3  # one constant acceleration
+    assert 32.5 < gaps[-1] < 33.0 and len(accs) * dt < 4.1  # 72 % of the step matched in 4 s, 1 m short of 34
+
+
+def test_soft_follower_gradient_is_finite_with_its_defaults():
+    """The defaults (no speed scaling, ``v_ref`` inf; no band) give a finite gradient: the analytic policy
+    gradient of a residual over this law would otherwise turn the policy's weights into NaN."""
+    from mixed_traffic.physics import SoftFollowerParams, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams())
+    gap = torch.tensor([20.0, 40.0, 6.0], requires_grad=True)
+    v = torch.tensor([20.0, 20.0, 25.0], requires_grad=True)
+    soft_follower_accel(gap, v, torch.tensor([22.0, 19.0, 25.0]), **p).sum().backward()
+    assert bool(torch.isfinite(gap.grad).all()) and bool(torch.isfinite(v.grad).all())
+
+
 def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
     from mixed_traffic import make_env
     from mixed_traffic.controllers.classic import make_classic_policy
@@ -303,12 +347,14 @@ def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
 
 
 @pytest.mark.parametrize("name, value", [("brake_opening", 1.5), ("v_ref", 0.0), ("gap_cap", -1.0),
-                                         ("kv_closing_near", -0.5)])
+                                         ("kv_closing_near", -0.5), ("ks_edge", -0.1),
+                                         ("match_gap_max", 8.0)])
 def test_soft_controller_rejects_out_of_range_parameters(name, value):
     from mixed_traffic.controllers.classic import make_classic_policy
 
+    band = {"match_gap_min": 10.0, "match_gap_max": 34.0}  # match_gap_max 8: below match_gap_min
     with pytest.raises(ValueError, match=name):
-        make_classic_policy("soft", low=-3.0, high=2.0, **{name: value})
+        make_classic_policy("soft", low=-3.0, high=2.0, **(band | {name: value}))
 
 
 def test_speed_scheduled_base_is_each_law_outside_its_band_and_their_blend_inside():

@@ -290,6 +290,28 @@ def test_residual_engages_linearly_over_engage_seconds_and_again_after_a_reset()
         ResidualAction(make_classic_policy("idm", base_env), engage_seconds=-1.0)
 
 
+def test_residual_fades_out_above_the_speeds_it_trained_on():
+    """``fade_speeds=(v_full, v_zero)``: the residual's weight is full at or below ``v_full``, 0 at or above
+    ``v_zero`` and linear between (hand values from the car's own speed at each step); a bad pair fails,
+    naming the argument."""
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    base_env = make_env("ring", batch_size=3, seed=0, profile="random_steps",
+                        profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0})
+    env = TransformedEnv(base_env, ResidualAction(make_classic_policy("idm", base_env), weight=0.5,
+                                                  fade_speeds=(9.0, 11.0)))
+    td = env.rollout(300, lambda td: td.set("action", torch.ones(3, 1)))
+    added = td["next", "cav", "accel"] - td["next", "residual", "base_action"]
+    v = td["cav", "speed"]  # the speed the command was given at
+    expect = 0.5 * ((11.0 - v) / 2.0).clamp(0.0, 1.0)
+    room = (td["next", "cav", "accel"] > -2.99) & (td["next", "cav", "accel"] < 1.99)  # not clipped
+    assert torch.allclose(added[room], expect[room], atol=1e-5)
+    assert bool(((v > 9.2) & (v < 10.8) & room).any()) and bool(((v < 9.0) & room).any())  # each regime seen
+    assert bool(((v > 11.0) & room).any())
+    with pytest.raises(ValueError, match="fade_speeds"):
+        ResidualAction(make_classic_policy("idm", base_env), fade_speeds=(20.0, 18.0))
+
+
 # ----------------------------------------------------------------------------- docstrings
 @pytest.mark.parametrize("module", [
     "transforms.safety_layer", "transforms.lagrangian", "transforms.rewards", "transforms.discretizer",

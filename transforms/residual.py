@@ -41,6 +41,11 @@ class ResidualAction(Transform):
             bumpless engagement: the base drives alone at first, so taking over a car whose own
             last acceleration is unknown starts from the base's command, not from the policy's.
         time_key: the episode time (s) read with ``engage_seconds`` (default ``("traffic", "time")``).
+        fade_speeds: ``(v_full, v_zero)`` (m/s, ``0 <= v_full < v_zero``): the residual's weight falls
+            linearly from full at the car's own speed ``v_full`` to 0 at ``v_zero`` (default None: no fade).
+            Set ``v_full`` to the top of the speeds the policy trained on: beyond them the base drives,
+            instead of a policy extrapolating outside its training distribution.
+        speed_key: the car's own speed (m/s) read with ``fade_speeds`` (default ``("cav", "speed")``).
 
     Example:
         >>> from mixed_traffic import make_env
@@ -59,11 +64,15 @@ class ResidualAction(Transform):
                  base_action_key: NestedKey = ("residual", "base_action"),
                  low: float | None = None, high: float | None = None,
                  policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
-                 time_key: NestedKey = ("traffic", "time")):
+                 time_key: NestedKey = ("traffic", "time"), fade_speeds: tuple[float, float] | None = None,
+                 speed_key: NestedKey = ("cav", "speed")):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if not engage_seconds >= 0:
             raise ValueError(f"ResidualAction: engage_seconds={engage_seconds!r} is invalid; allowed: >= 0 (s)")
+        if fade_speeds is not None and not (len(fade_speeds) == 2 and 0 <= fade_speeds[0] < fade_speeds[1]):
+            raise ValueError(f"ResidualAction: fade_speeds={fade_speeds!r} is invalid; allowed: (v_full, v_zero) "
+                             "with 0 <= v_full < v_zero (m/s), or None")
         if low is not None and high is not None and not low < high:
             raise ValueError(f"ResidualAction: low={low!r}, high={high!r} are invalid; allowed: low < high")
         if policy_bounds is not None and not (len(policy_bounds) == 2 and policy_bounds[0] < policy_bounds[1]):
@@ -74,6 +83,8 @@ class ResidualAction(Transform):
         self.base = base
         self.weight = float(weight)
         self.engage_seconds, self.time_key = float(engage_seconds), time_key
+        self.fade_speeds = None if fade_speeds is None else (float(fade_speeds[0]), float(fade_speeds[1]))
+        self.speed_key = speed_key
         self.action_key = action_key
         if base_out_key is None:
             out_keys = getattr(base, "out_keys", None)
@@ -109,6 +120,10 @@ class ResidualAction(Transform):
         if self.engage_seconds > 0:
             t = tensordict.get(self.time_key).to(a_res.dtype).reshape(*a_res.shape[:-1], -1)[..., :1]
             weight = weight * (t / self.engage_seconds).clamp(0.0, 1.0)
+        if self.fade_speeds is not None:
+            v_full, v_zero = self.fade_speeds
+            v = tensordict.get(self.speed_key).to(a_res.dtype).reshape(a_res.shape)
+            weight = weight * ((v_zero - v) / (v_zero - v_full)).clamp(0.0, 1.0)
         executed = torch.minimum(torch.maximum(a_base + weight * a_res, low), high)
         tensordict.set(self.action_key, executed)
         tensordict.set(self.base_action_key, a_base)
@@ -131,4 +146,5 @@ class ResidualAction(Transform):
 
     def __repr__(self) -> str:
         engage = f", engage_seconds={self.engage_seconds}" if self.engage_seconds else ""
-        return f"{type(self).__name__}(weight={self.weight}{engage}, base={type(self.base).__name__})"
+        fade = f", fade_speeds={self.fade_speeds}" if self.fade_speeds else ""
+        return f"{type(self).__name__}(weight={self.weight}{engage}{fade}, base={type(self.base).__name__})"

@@ -41,7 +41,10 @@ class CarFollowingCAV(nn.Module):
             for name, ok, allowed in (("brake_opening", 0.0 <= p["brake_opening"] <= 1.0, "[0, 1]"),
                                       ("v_ref", p["v_ref"] > 0.0, "> 0 (inf: no scaling)"),
                                       ("kv_closing_near", p["kv_closing_near"] >= 0.0, ">= 0 (0: off)"),
-                                      ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)")):
+                                      ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)"),
+                                      ("ks_edge", p["ks_edge"] >= 0.0, ">= 0 (0: off)"),
+                                      ("match_gap_max", p["match_gap_max"] > max(p["match_gap_min"], 0.0),
+                                       f"> match_gap_min ({p['match_gap_min']}) and > 0 (inf: off)")):
                 if not ok:
                     raise ValueError(f"soft parameter {name} = {p[name]} is invalid; allowed: {allowed}")
         if gap_max is not None:

@@ -125,14 +125,16 @@ def _residual_idm(tcfg, env):
     r = tcfg.residual
     try:
         base = residual_base(r, env, saturate=r.get("saturate_base", True))
-        return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0))
+        fade = r.get("fade_speeds")
+        return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
+                              fade_speeds=None if fade is None else tuple(fade))
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
 
 def residual_base(rcfg, env, *, saturate: bool = True):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
-    parameter: the model's own), joined by speed to ``high_speed`` when that is set. ``saturate=False``:
+    parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set. ``saturate=False``:
     its command is not clipped to the env's action bounds (``ResidualAction`` clips the sum)."""
     from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy
 
@@ -143,9 +145,10 @@ def residual_base(rcfg, env, *, saturate: bool = True):
         return make_classic_policy(node.base, env, **bounds, **params)
 
     base = law(rcfg)
-    high = rcfg.get("high_speed")
-    if high is not None and high.get("base") is not None:
-        base = speed_scheduled_policy(base, law(high), high.v_low, high.v_high)
+    for key in ("high_speed", "top_speed"):
+        node = rcfg.get(key)
+        if node is not None and node.get("base") is not None:
+            base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
     return base
 
 
