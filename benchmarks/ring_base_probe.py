@@ -12,7 +12,11 @@ against IDM-as-CAV's on the same episodes and the return's difference; ``--out``
     python benchmarks/ring_base_probe.py --experiment ring_lagrangian_ppo_tight \\
         --set transforms.residual.params.kv_closing_near=0.0 transforms.residual.params.kv=0.805
 
-This is how the base of ``experiment=ring_lagrangian_ppo_tight`` was picked (docs/results.md).
+This is how the bases of ``experiment=ring_lagrangian_ppo_tight`` and ``experiment=ring_lagrangian_ppo_band``
+were picked (docs/results.md)::
+
+    python benchmarks/ring_base_probe.py --experiment ring_lagrangian_ppo_band \
+        --set transforms.residual.top_speed.params.match_gap_max=30 --cases fast_steps eudc
 """
 
 from __future__ import annotations
