@@ -454,3 +454,24 @@ def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_ma
     assert near["min_gap"] > off["min_gap"] + 0.5
     with pytest.raises(SystemExit, match="stop_and_go"):
         mod.main(["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_stop"])
+
+
+def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_than_the_capped_idm():
+    """Above the training range the default's base is the band follower: on a head stepping between 20 and
+    28 m/s (one episode of ``fast_steps``, the tuning seed) it keeps the gap inside [5, 40] m without a layer
+    and with far less jerk than the previous default's 27-m-capped IDM on the same episode, and below
+    IDM-as-CAV's; the steady tracking stays within the 0.2 m/s bar."""
+    import importlib.util
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("ring_base_probe", os.path.join(root, "benchmarks", "ring_base_probe.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    args = ["--cases", "fast_steps", "--episodes", "1"]
+    band = mod.main(["--experiment", "ring_lagrangian_ppo_band", *args])
+    tight = mod.main(["--experiment", "ring_lagrangian_ppo_tight", *args])["base"]["fast_steps"]
+    b, idm = band["base"]["fast_steps"], band["idm_as_cav"]["fast_steps"]
+    assert b["collisions"] == 0 and b["min_gap"] >= 5.0 and b["max_head_gap"] <= 40.0
+    assert b["jerk"] < 0.75 * tight["jerk"] and b["jerk"] < idm["jerk"]
+    assert b["steady_rmse"] <= 0.2
