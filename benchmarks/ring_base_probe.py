@@ -15,7 +15,7 @@ against IDM-as-CAV's on the same episodes and the return's difference; ``--out``
 This is how the bases of ``experiment=ring_lagrangian_ppo_tight`` and ``experiment=ring_lagrangian_ppo_band``
 were picked (docs/results.md)::
 
-    python benchmarks/ring_base_probe.py --experiment ring_lagrangian_ppo_band \
+    python benchmarks/ring_base_probe.py --experiment ring_lagrangian_ppo_band \\
         --set transforms.residual.top_speed.params.match_gap_max=30 --cases fast_steps eudc
 """
 

@@ -124,15 +124,15 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     desired = torch.clamp(s0 + h * v, max=gap_cap)
     inside = (1.0 - gap / desired.clamp_min(1e-6)).clamp(0.0, 1.0)  # 0 at or beyond the desired gap, 1 at 0
     k_close = (kv if kv_closing is None else kv_closing) + kv_closing_near * inside
-    k = torch.where(v_leader < v, k_close, kv)
-    linear = ks * (gap - desired) + k * (v_leader - v)
-    linear = linear / (v / v_ref).clamp_min(1.0)  # g(v) = min(1, v_ref / v); v_ref = inf gives 1 (and a finite gradient)
-    linear = torch.where((v_leader > v) & (linear < 0), linear * brake_opening, linear)
     dv = v_leader - v
-    room = torch.where(dv > 0, match_gap_max - gap, gap - match_gap_min).clamp_min(1.0)  # inf: no term
+    k = torch.where(dv < 0, k_close, kv)
+    linear = ks * (gap - desired) + k * dv
+    linear = linear / (v / v_ref).clamp_min(1.0)  # g(v) = min(1, v_ref / v); v_ref = inf gives 1 (and a finite gradient)
+    linear = torch.where((dv > 0) & (linear < 0), linear * brake_opening, linear)
+    room = torch.where(dv > 0, match_gap_max - gap, gap - match_gap_min).clamp_min(1.0)  # inf (no band): no term
     linear = linear + dv * dv.abs() / (2.0 * room)
-    beyond = (gap - match_gap_max).clamp_min(0.0) - (match_gap_min - gap).clamp_min(0.0)
-    linear = linear + ks_edge * torch.nan_to_num(beyond)  # 0 inside the band (and with no band)
+    beyond = (gap - match_gap_max).clamp_min(0.0) - (match_gap_min - gap).clamp_min(0.0)  # 0 inside (and no band)
+    linear = linear + ks_edge * beyond
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 
 

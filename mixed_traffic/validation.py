@@ -256,7 +256,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     _check_classic_params(cfg, "transforms.residual")
     fade = OmegaConf.select(cfg, "transforms.residual.fade_speeds", default=None)
     if fade is not None and not (OmegaConf.is_list(fade) and len(fade) == 2
-                                 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in fade)
+                                 and all(is_real(x) for x in fade)
                                  and 0 <= fade[0] < fade[1]):
         raise ConfigError("transforms.residual.fade_speeds", repr(fade),
                           "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
