@@ -436,6 +436,36 @@ def test_residual_base_factory_drives_the_runs_base_alone_and_refuses_a_run_with
         residual_base_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))
 
 
+def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
+    """``mt-eval experiment=ring_lagrangian_ppo_band controller=base``: the experiment's scheduled base drives
+    the CAV alone, on the episodes a checkpoint of the experiment is evaluated on, with and without the
+    layer. It is what the learned residual is measured against: the report equals, episode by episode, the
+    experiment's own chain driven by a residual of zero. An experiment without a residual fails naming
+    ``controller``, before any rollout."""
+    from tensordict.nn import TensorDictModule
+
+    from mixed_traffic.evaluation import evaluate_and_report
+    from mixed_traffic.validation import ConfigError
+
+    over = ["experiment=ring_lagrangian_ppo_band", "trainer.progress=false", *SHORT]
+    rep = evaluate_and_report(compose([*over, "controller=base"]), tmp_path / "base")
+    assert rep["policy"] == "base-as-CAV" and "residual_idm" not in rep["transforms"]
+    assert list(rep["without_layer"]["emergency_brake"]) == ["standard (73.4 m)", "8 m", "15 m"]
+
+    def zero_residual(env):
+        return TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])
+
+    ref, _ = evaluate(compose(over), policy_factory=zero_residual)
+    for prof in ("random_steps", "emergency_brake"):
+        for k in ("return", "mean_abs_jerk", "min_gap", "max_head_gap"):
+            assert rep["profiles"][prof]["per_episode"][k] == pytest.approx(ref["profiles"][prof]["per_episode"][k],
+                                                                             rel=1e-5), (prof, k)
+    with pytest.raises(ConfigError, match=r"controller.*lacks residual_idm"):
+        evaluate_and_report(compose(["experiment=ring_lagrangian_ppo_scratch", "controller=base", *SHORT]),
+                            tmp_path / "none")
+    assert not (tmp_path / "none").exists()
+
+
 def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_margin():
     """benchmarks/ring_base_probe.py builds the experiment's base with the ``--set`` overrides: on a head
     braking to standstill the closing gain near the leader (``kv_closing_near``) stops the base alone

@@ -13,8 +13,14 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from mixed_traffic.evaluation.harness import METRICS, episode_metrics, evaluate
-from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
+from mixed_traffic.evaluation.policies import (
+    checkpoint_config,
+    classic_factory,
+    policy_factory_from_state,
+    residual_base_factory,
+)
 from mixed_traffic.evaluation.report import plot_training_curves, read_scalars, write_report
+from mixed_traffic.validation import ConfigError
 
 
 def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str | Path | None = None,
@@ -46,7 +52,15 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         run_dir = p if p.is_dir() else (p.parent.parent if p.parent.name == "checkpoints" else p.parent)
         eval_cfg = run_cfg
     else:
-        factory = classic_factory(controller)
+        if controller == "base":  # the experiment's residual base driving alone: what the learned residual adds to
+            if "residual_idm" not in cfg.transforms.chain:
+                raise ConfigError("controller", f"'base' needs a residual base, but transforms.chain "
+                                  f"{list(cfg.transforms.chain)} lacks residual_idm",
+                                  "base with an experiment that trains a residual (e.g. "
+                                  "experiment=ring_lagrangian_ppo_band), or a classical controller (idm, ovm, soft)")
+            factory = residual_base_factory(cfg)
+        else:
+            factory = classic_factory(controller)
         label = f"{controller}-as-CAV"
         eval_cfg = cfg
         if "residual_idm" in cfg.transforms.chain:  # the controller drives the CAV itself, not a residual
