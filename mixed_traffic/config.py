@@ -129,11 +129,11 @@ class JerkPenaltyConfig:
 
 
 @dataclass
-class HighSpeedBaseConfig:
-    """A second classical law that takes over the residual's base by speed
-    (``mixed_traffic.controllers.classic.SpeedScheduledCAV``): ``transforms.residual.base`` drives below
-    ``v_low``, this one above ``v_high`` (m/s), a linear blend between. ``base`` null (the default): one
-    base at every speed.
+class SpeedLawConfig:
+    """A classical law that takes over the residual's base by speed
+    (``mixed_traffic.controllers.classic.SpeedScheduledCAV``): the laws below it (``transforms.residual.base``,
+    then ``high_speed``) drive below ``v_low``, this one above ``v_high`` (m/s), a linear blend between.
+    ``base`` null (the default): off. Used twice, as ``transforms.residual.high_speed`` and ``top_speed``.
     """
 
     base: str | None = None  # "idm", "ovm" or "soft"; null: off
@@ -150,7 +150,7 @@ class ResidualConfig:
     that stops 6 m behind its leader); unknown names fail when the env is built, naming the allowed ones.
     ``engage_seconds`` (s, >= 0): the residual's weight rises linearly from 0 at the episode's start
     to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
-    ``high_speed`` (:class:`HighSpeedBaseConfig`): a second law that takes the base over by speed;
+    ``high_speed`` (:class:`SpeedLawConfig`): a second law that takes the base over by speed;
     ``top_speed`` (the same fields): a third that takes over from the first two (scheduled as one) above
     its own ``v_low`` / ``v_high``.
     ``fade_speeds`` (``[v_full, v_zero]`` m/s, or null): the residual's weight falls linearly from full at
@@ -165,8 +165,8 @@ class ResidualConfig:
     weight: float = 0.5
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
     engage_seconds: float = 0.0
-    high_speed: HighSpeedBaseConfig = field(default_factory=HighSpeedBaseConfig)
-    top_speed: HighSpeedBaseConfig = field(default_factory=HighSpeedBaseConfig)
+    high_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
+    top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     saturate_base: bool = True
 

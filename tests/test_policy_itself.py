@@ -15,18 +15,6 @@ from mixed_traffic.evaluation import evaluate
 from mixed_traffic.profiles import make_profile
 from transforms import InterventionCost, LagrangeMultiplier, NonNegativeReward, SafetyLayer
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
-
-
-def _benchmark(name: str):
-    """The module ``benchmarks/NAME.py`` (a script, not a package module)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 # ----------------------------------------------------------------------------- intervention cost
 def _env(mode="both", coef=1.0, batch=4):
@@ -374,12 +362,12 @@ def test_batched_evaluation_matches_one_profile_at_a_time():
         assert torch.allclose(free[prof]["8 m"][0]["min_gap"], m8["min_gap"], atol=1e-4)
 
 
-def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path):
+def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path, benchmark_script):
     """benchmarks/ring_jerk_by_time.py: the windows' shares add up to the report's whole-episode mean |jerk|
     (first step not counted), and the mean from a time on is that of those steps alone."""
     from mixed_traffic.evaluation.harness import episode_metrics, rollout_for_metrics
 
-    mod = _benchmark("ring_jerk_by_time")
+    mod = benchmark_script("ring_jerk_by_time")
 
     env = make_env("ring", batch_size=3, seed=0, episode_seconds=8.0)
     gen = torch.Generator().manual_seed(0)
@@ -397,7 +385,7 @@ def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path):
+def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path, benchmark_script):
     """benchmarks/ring_generalization.py --baselines-with-layer: each baseline runs again behind the
     trained run's safety layer on the same episodes; the layer's work shows in its row (IDM-as-CAV
     starts 73.4 m behind a 20-28 m/s head, beyond s_max) and not in the layer-free one."""
@@ -409,7 +397,7 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     train(compose(["experiment=ring_lagrangian_ppo_scratch", "trainer.total_frames=32", "trainer.num_envs=8",
                    "trainer.rollout_len=4", "trainer.epochs=1", "trainer.minibatch_size=16",
                    "trainer.progress=false", "env.episode_seconds=1.0"]), out_dir=run)
-    mod = _benchmark("ring_generalization")
+    mod = benchmark_script("ring_generalization")
     out = tmp_path / "gen"
     res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
                     "--baselines", "idm", "--baselines-with-layer", "--out", str(out)])
@@ -466,11 +454,11 @@ def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
     assert not (tmp_path / "none").exists()
 
 
-def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_margin():
+def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_margin(benchmark_script):
     """benchmarks/ring_base_probe.py builds the experiment's base with the ``--set`` overrides: on a head
     braking to standstill the closing gain near the leader (``kv_closing_near``) stops the base alone
     further back than the same base without it; a case that does not exist fails naming the allowed ones."""
-    mod = _benchmark("ring_base_probe")
+    mod = benchmark_script("ring_base_probe")
     args = ["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_standstill", "--episodes", "1"]
     near = mod.main(args)["base"]["brake_to_standstill"]
     off = mod.main(args + ["--set", "transforms.residual.params.kv_closing_near=0.0"])["base"]["brake_to_standstill"]
@@ -480,12 +468,12 @@ def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_ma
         mod.main(["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_stop"])
 
 
-def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_than_the_capped_idm():
+def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_than_the_capped_idm(benchmark_script):
     """Above the training range the default's base is the band follower: on a head stepping between 20 and
     28 m/s (one episode of ``fast_steps``, the tuning seed) it keeps the gap inside [5, 40] m without a layer
     and with far less jerk than the previous default's 27-m-capped IDM on the same episode, and below
     IDM-as-CAV's; the steady tracking stays within the 0.2 m/s bar."""
-    mod = _benchmark("ring_base_probe")
+    mod = benchmark_script("ring_base_probe")
     args = ["--cases", "fast_steps", "--episodes", "1"]
     band = mod.main(["--experiment", "ring_lagrangian_ppo_band", *args])
     tight = mod.main(["--experiment", "ring_lagrangian_ppo_tight", *args])["base"]["fast_steps"]

@@ -4,7 +4,6 @@ agreement with the torch backend. Real SUMO, no mocks."""
 from __future__ import annotations
 
 import functools
-import importlib.util
 import os
 import subprocess
 import sys
@@ -23,13 +22,6 @@ from mixed_traffic.physics import idm_accel  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONST_HEAD = dict(profile="constant", profile_kwargs={"v": 10.0})
-
-
-def _agreement_module():
-    spec = importlib.util.spec_from_file_location("sumo_agreement", os.path.join(ROOT, "benchmarks", "sumo_agreement.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _drive(env, accel: float, steps: int):
@@ -123,17 +115,9 @@ def test_speed_mode_0_collides_and_terminates_speed_mode_95_does_not():
         safe.close()
 
 
-def _speed_mode_module():
-    path = os.path.join(ROOT, "benchmarks", "sumo_speed_mode_agreement.py")
-    spec = importlib.util.spec_from_file_location("sumo_speed_mode_agreement", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_torch_speed_mode_95_equals_sumos():
+def test_torch_speed_mode_95_equals_sumos(benchmark_script):
     """The torch backend's sumo_safety against SUMO's speed mode 95 (tolerances: docs/sumo.md, measured)."""
-    mod = _speed_mode_module()
+    mod = benchmark_script("sumo_speed_mode_agreement")
     # from SUMO's own state, the function predicts every step SUMO executes (measured: 1e-13 m/s^2
     # before the SUMO ring was reworked for ring_wave, ~1e-6 m/s^2 since; cause not isolated)
     for pol in ("+2", "idm_T0.5"):
@@ -177,8 +161,8 @@ def test_reset_restarts_with_seeded_profiles():
     torch.testing.assert_close(a, t, atol=0.05, rtol=0)
 
 
-def test_agreement_with_torch_backend_short():
-    mod = _agreement_module()
+def test_agreement_with_torch_backend_short(benchmark_script):
+    mod = benchmark_script("sumo_agreement")
     _, tr, su = mod.run_pair(seconds=20.0, seed=0)
     res = mod.compare(tr, su)
     assert len(tr["speed"]) == 201
@@ -246,8 +230,8 @@ def test_parallel_env_two_workers():
 
 
 @pytest.mark.slow
-def test_agreement_120s():
-    mod = _agreement_module()
+def test_agreement_120s(benchmark_script):
+    mod = benchmark_script("sumo_agreement")
     for seed in (0, 1, 2):
         _, tr, su = mod.run_pair(seconds=120.0, seed=seed)
         res = mod.compare(tr, su)
@@ -256,11 +240,8 @@ def test_agreement_120s():
 
 
 @pytest.mark.slow
-def test_override_rate_speed_mode_95():
-    spec = importlib.util.spec_from_file_location(
-        "sumo_override_rate", os.path.join(ROOT, "benchmarks", "sumo_override_rate.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def test_override_rate_speed_mode_95(benchmark_script):
+    mod = benchmark_script("sumo_override_rate")
     assert mod.override_rate("random", 100.0, 0)["rate"] < 0.05
     r = mod.override_rate("+3", 100.0, 0)
     assert r["rate"] > 0.9 and not r["collision"]
