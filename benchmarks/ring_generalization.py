@@ -9,6 +9,17 @@ stopping, on the 313.65 m ring, human parameters spread +-10 %):
 - ``ring_250`` / ``ring_400``: ``random_steps`` on 250 m and 400 m rings;
 - ``humans_30pct``: ``random_steps`` with the humans' parameters spread +-30 %.
 
+Six more, added after the policies above were trained and their band law chosen (a test nothing was
+picked on; the head's braking is capped at 3 m/s^2, the CAV's own limit, so every case can be driven
+inside the [5, 40] m band):
+
+- ``brake_from_25``: ``emergency_brake`` from 25 m/s, above the training range, down to 0 m/s;
+- ``stop_and_go_15``: as ``stop_and_go`` between 15 m/s and standstill;
+- ``wide_steps``: ``random_steps`` at 2-28 m/s, through and above the training range;
+- ``sine_fast``: ``sine`` at 24 +- 4 m/s, period 40 s;
+- ``ring_200``: ``random_steps`` on a 200 m ring;
+- ``humans_50pct``: ``random_steps`` with the humans' parameters spread +-50 %.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -53,6 +64,13 @@ def cases(seconds: float) -> dict[str, dict]:
         "ring_250": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 250.0}},
         "ring_400": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 400.0}},
         "humans_30pct": {"profile": "random_steps", "kwargs": steps, "eval": {"hdv_param_noise": 0.3}},
+        "brake_from_25": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 25.0, "v_low": 0.0}},
+        "stop_and_go_15": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=15.0)},
+        "wide_steps": {"profile": "random_steps", "kwargs": {"v_low": 2.0, "v_high": 28.0, "period": 15.0,
+                                                             "v_init": 10.0}},
+        "sine_fast": {"profile": "sine", "kwargs": {"v_star": 24.0, "amplitude": 4.0, "period": 40.0}},
+        "ring_200": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 200.0}},
+        "humans_50pct": {"profile": "random_steps", "kwargs": steps, "eval": {"hdv_param_noise": 0.5}},
     }
 
 

@@ -156,6 +156,10 @@ class ResidualConfig:
     ``fade_speeds`` (``[v_full, v_zero]`` m/s, or null): the residual's weight falls linearly from full at
     the car's own speed ``v_full`` to 0 at ``v_zero``, so that above the speeds the policy trained on the
     base drives (``transforms.ResidualAction``).
+    ``stop_gap`` (m, > 0, or null): the base never commands more than the largest acceleration that keeps
+    every future gap at or above ``stop_gap`` if the leader brakes as hard as it can from the next step on
+    (``mixed_traffic.controllers.classic.StoppingEnvelope``, the safety layer's stopping rule as a term of
+    the base); null: no envelope.
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -168,6 +172,7 @@ class ResidualConfig:
     high_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
+    stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     saturate_base: bool = True
 
 

@@ -131,6 +131,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.top_speed.v_low": Real(0),
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
+    "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),

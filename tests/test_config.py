@@ -304,3 +304,25 @@ def test_band_experiment_adds_a_third_law_and_the_fade_and_nothing_else():
                        ("transforms.residual.top_speed.params.ks_edge=x", "transforms.residual.top_speed.params.ks_edge")):
         with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
             validate_config(compose(["experiment=ring_lagrangian_ppo_band", bad]))
+
+
+def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_band_stop`` is ``ring_lagrangian_ppo_band`` with ``stop_gap`` 5 m (the
+    safety layer's s_min) and nothing else; the envelope wraps the built base; a gap of 0 fails at start-up."""
+    from mixed_traffic.controllers.classic import SpeedScheduledCAV, StoppingEnvelope
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import ConfigError, validate_config
+    from transforms import ResidualAction
+
+    stop, band = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_band_stop", "ring_lagrangian_ppo_band"))
+    assert stop.transforms.residual.stop_gap == stop.transforms.safety_layer.s_min == 5.0
+    assert band.transforms.residual.stop_gap is None
+    with open_dict(stop):
+        stop.transforms.residual.stop_gap, stop.name = None, band.name
+    assert OmegaConf.to_container(stop) == OmegaConf.to_container(band)
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop"]))
+    res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    env_ = res[0].base.module
+    assert isinstance(env_, StoppingEnvelope) and isinstance(env_.law, SpeedScheduledCAV) and env_.stop_gap == 5.0
+    with pytest.raises(ConfigError, match=r"transforms\.residual\.stop_gap"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.stop_gap=0"]))

@@ -481,3 +481,37 @@ def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_tha
     assert b["collisions"] == 0 and b["min_gap"] >= 5.0 and b["max_head_gap"] <= 40.0
     assert b["jerk"] < 0.75 * tight["jerk"] and b["jerk"] < idm["jerk"]
     assert b["steady_rmse"] <= 0.2
+
+
+def _brake_from_25(stop_gap, layer: bool):
+    """The band base (``stop_gap``: inside its stopping envelope) behind a head that cruises at 25 m/s and
+    brakes at its bound (3 m/s^2, the CAV's own) to a standstill at 5 s, from a 22 m gap; 30 s."""
+    from omegaconf import open_dict
+
+    from mixed_traffic.evaluation.policies import residual_base_factory
+    from mixed_traffic.training.builders import make_transformed_env
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_band", f"transforms.residual.stop_gap={stop_gap}",
+                   "transforms.chain=[safety_layer]" if layer else "transforms.chain=[non_negative_reward]"])
+    with open_dict(cfg):
+        cfg.transforms.chain = list(cfg.transforms.chain) + ["residual_idm"]  # for the factory's check only
+    env = make_transformed_env(cfg, num_envs=2, seed=0, without=("residual_idm",), profile="emergency_brake",
+                               profile_kwargs={"start": 5.0, "v_cruise": 25.0, "v_low": 0.0},
+                               v_init=25.0, init_spacing=22.0)
+    td = env.rollout(300, residual_base_factory(cfg)(env), break_when_any_done=False)
+    return td
+
+
+def test_stopping_envelope_keeps_the_band_base_off_a_head_braking_from_25_ms_to_a_standstill():
+    """The guarantee a policy faded out to its base relies on without a layer: the band follower alone hits
+    a head braking from 25 m/s at the CAV's own braking bound; inside the stopping envelope of 5 m it stops
+    at 5 m or more. With the layer's s_min equal to the envelope's gap, the layer never brakes for it (it
+    may still push a CAV that falls back beyond s_max as the head drives off again)."""
+    bare = _brake_from_25("null", layer=False)
+    assert bool(bare["next", "collision"].any())
+    safe = _brake_from_25(5.0, layer=False)
+    assert not bool(safe["next", "collision"].any())
+    assert float(safe["next", "cav", "gap"].min()) >= 5.0 - 1e-3
+    assert float(safe["next", "cav", "speed"].min(-2).values.max()) < 0.5  # it did stop behind the head
+    layered = _brake_from_25(5.0, layer=True)
+    assert float(layered["next", "safety", "delta"].min()) > -1e-4

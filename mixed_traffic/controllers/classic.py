@@ -104,6 +104,54 @@ def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low:
                             in_keys=list(low.in_keys), out_keys=list(low.out_keys))
 
 
+class StoppingEnvelope(nn.Module):
+    """``min(law(gap, v, v_lead), a_stop)``: a law that never leaves the stopping-safe set.
+
+    ``a_stop`` is the largest acceleration after which, if from the next step on the leader brakes at
+    ``leader_brake`` and this car at ``min(brake, leader_brake)``, every future gap stays at or above
+    ``stop_gap`` (m): the safety layer's ``"stopping"`` rule (:func:`transforms.safety_layer.safe_accel_upper`,
+    exact in the env's discrete time), here as a term of the classical law itself, as Gipps' safe speed is
+    of Gipps' model. From a safe state the law is then collision-free whatever the leader does within its
+    bound, so a residual over it that is faded out (``ResidualAction(fade_speeds=...)``) drives without a
+    layer there. Below the bound the law is unchanged. TorchRL has no car-following envelope.
+    """
+
+    def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float):
+        super().__init__()
+        from transforms.safety_layer import safe_accel_upper  # mixed_traffic imports the transforms package lazily
+
+        if not stop_gap > 0.0:
+            raise ValueError(f"stop_gap = {stop_gap} is invalid; allowed: > 0 (m)")
+        self._upper = safe_accel_upper
+        self.law, self.stop_gap, self.dt, self.brake, self.low = law, float(stop_gap), float(dt), float(brake), float(low)
+        self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        upper = self._upper(gap, speed, leader_speed, s_min=self.stop_gap, dt=self.dt, brake=self.brake,
+                                 leader_brake=self.leader_brake.to(speed))
+        return torch.minimum(self.law(gap, speed, leader_speed), upper.clamp_min(self.low))
+
+
+def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float) -> TensorDictModule:
+    """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
+    :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
+    (the head's, a human's or a CAV's; as the safety layer reads them).
+
+    >>> from mixed_traffic import make_env
+    >>> env = make_env("ring", batch_size=2, seed=0)
+    >>> pol = stopping_envelope_policy(make_classic_policy("idm", env), env, stop_gap=5.0)
+    >>> bool(env.rollout(50, pol)["next", "collision"].any())
+    False
+    """
+    from transforms.safety_layer import scenario_leader_brake
+
+    scenario = env.scenario
+    low, _ = action_bounds(env)
+    return TensorDictModule(StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
+                                             leader_brake=scenario_leader_brake(scenario), low=low),
+                            in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
+
+
 def action_bounds(env) -> tuple[float, float]:
     """``(low, high)`` of the CAV acceleration command of ``env`` (first element of its action spec)."""
     spec = env.action_spec
@@ -147,4 +195,4 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
 
 
 __all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
-           "SpeedScheduledCAV", "CLASSIC"]
+           "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC"]

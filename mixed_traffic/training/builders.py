@@ -134,9 +134,10 @@ def _residual_idm(tcfg, env):
 
 def residual_base(rcfg, env, *, saturate: bool = True):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
-    parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set. ``saturate=False``:
+    parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
+    inside the stopping envelope of ``stop_gap`` when it is set. ``saturate=False``:
     its command is not clipped to the env's action bounds (``ResidualAction`` clips the sum)."""
-    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy
+    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
 
     bounds = {} if saturate else {"low": -math.inf, "high": math.inf}
 
@@ -149,6 +150,8 @@ def residual_base(rcfg, env, *, saturate: bool = True):
         node = rcfg.get(key)
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
+    if rcfg.get("stop_gap") is not None:
+        base = stopping_envelope_policy(base, env, rcfg.stop_gap)
     return base
 
 
