@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import open_dict
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
@@ -486,8 +487,6 @@ def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_tha
 def _brake_from_25(stop_gap, layer: bool):
     """The band base (``stop_gap``: inside its stopping envelope) behind a head that cruises at 25 m/s and
     brakes at its bound (3 m/s^2, the CAV's own) to a standstill at 5 s, from a 22 m gap; 30 s."""
-    from omegaconf import open_dict
-
     from mixed_traffic.evaluation.policies import residual_base_factory
     from mixed_traffic.training.builders import make_transformed_env
 
@@ -515,3 +514,20 @@ def test_stopping_envelope_keeps_the_band_base_off_a_head_braking_from_25_ms_to_
     assert float(safe["next", "cav", "speed"].min(-2).values.max()) < 0.5  # it did stop behind the head
     layered = _brake_from_25(5.0, layer=True)
     assert float(layered["next", "safety", "delta"].min()) > -1e-4
+
+
+def test_stopping_envelope_leaves_everyday_driving_alone():
+    """Where no stop-safe bound binds (the training profile's speeds, no hard stop from speed) the enveloped
+    base commands exactly what the bare base does: the envelope changes nothing the policy trained over."""
+    from mixed_traffic.evaluation.policies import residual_base_factory
+    from mixed_traffic.training.builders import make_transformed_env
+
+    accel = {}
+    for gap in ("null", "5.0"):
+        cfg = compose(["experiment=ring_lagrangian_ppo_band", f"transforms.residual.stop_gap={gap}",
+                       "transforms.chain=[non_negative_reward]"])
+        with open_dict(cfg):
+            cfg.transforms.chain = ["non_negative_reward", "residual_idm"]  # for the factory's check only
+        env = make_transformed_env(cfg, num_envs=4, seed=0, without=("residual_idm",), profile="random_steps")
+        accel[gap] = env.rollout(600, residual_base_factory(cfg)(env), break_when_any_done=False)["next", "cav", "accel"]
+    assert torch.equal(accel["null"], accel["5.0"])

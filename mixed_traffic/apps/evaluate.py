@@ -3,7 +3,7 @@
     mt-eval checkpoint=outputs/runs/ring_lagrangian_ppo/<run>          # final.pt of a run
     mt-eval checkpoint=<run>/checkpoints/latest.pt eval.episodes=5
     mt-eval experiment=ring_lagrangian_ppo transforms=reward controller=idm
-    mt-eval experiment=ring_lagrangian_ppo_band controller=base          # the experiment's residual base alone
+    mt-eval experiment=ring_lagrangian_ppo_band_stop controller=base     # the experiment's residual base alone
     mt-eval experiment=ring_wave_lppo controller=all                    # wave report: every classical damper
     mt-eval experiment=ring_wave_lppo checkpoint=<run>                  # learned damper vs the classical ones
 """

@@ -128,7 +128,7 @@ class StoppingEnvelope(nn.Module):
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         upper = self._upper(gap, speed, leader_speed, s_min=self.stop_gap, dt=self.dt, brake=self.brake,
-                                 leader_brake=self.leader_brake.to(speed))
+                            leader_brake=self.leader_brake.to(speed))
         return torch.minimum(self.law(gap, speed, leader_speed), upper.clamp_min(self.low))
 
 

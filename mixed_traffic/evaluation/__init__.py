@@ -57,7 +57,7 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
                 raise ConfigError("controller", f"'base' needs a residual base, but transforms.chain "
                                   f"{list(cfg.transforms.chain)} lacks residual_idm",
                                   "base with an experiment that trains a residual (e.g. "
-                                  "experiment=ring_lagrangian_ppo_band), or a classical controller (idm, ovm, soft)")
+                                  "experiment=ring_lagrangian_ppo_band_stop), or a classical controller (idm, ovm, soft)")
             factory = residual_base_factory(cfg)
         else:
             factory = classic_factory(controller)
