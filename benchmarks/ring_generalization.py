@@ -25,7 +25,8 @@ and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--base
 run's residual base with the learned residual at zero) runs
 without a layer and, with ``--baselines-with-layer``, again behind the run's safety layer, all
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
-``OUT/generalization.json`` and prints the table.
+``OUT/generalization.json`` and prints the table; ``--plot`` also draws episode 0 of each case
+(``OUT/<case>.png``).
 
     python benchmarks/ring_generalization.py --checkpoint outputs/results/ring_lagrangian_ppo_seed0 \\
         --episodes 5 --seconds 200 --out outputs/results/ring_lagrangian_ppo_seed0/generalization
@@ -137,7 +138,15 @@ def main(argv=None) -> dict:
     p.add_argument("--baselines-with-layer", action="store_true",
                    help="run every baseline again behind the run's safety layer (rows '<name> + layer')")
     p.add_argument("--out", required=True)
+    p.add_argument("--plot", action="store_true",
+                   help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
+                        "policy with and without its layer and of each baseline without one")
+    p.add_argument("--plot-seconds", type=float, nargs=2, default=None, metavar=("T0", "T1"),
+                   help="time window of --plot (default: the whole episode)")
     a = p.parse_args(argv)
+    unknown = sorted(set(a.cases or ()) - set(cases(a.seconds)))
+    if unknown:
+        raise SystemExit(f"--cases: {unknown} are not cases; allowed: {list(cases(a.seconds))}")
 
     import torch
     from omegaconf import open_dict
@@ -159,20 +168,27 @@ def main(argv=None) -> dict:
     for name in names:
         case = all_cases[name]
         cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
-        rep, _ = evaluate(cfg, policy_factory=factory)
+        rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
         results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof)}
+        plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
             base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
-            results[name][spec] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
+            base_rep, base_tr = evaluate(base_cfg, policy_factory=fac)
+            results[name][spec] = row(base_rep, prof)
+            plotted[f"{spec}, no layer"] = base_tr[prof]
             if a.baselines_with_layer:
                 with open_dict(base_cfg):
                     base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
                 results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
         print(name, json.dumps(results[name]["policy"]), flush=True)
+        if a.plot:
+            Path(a.out).mkdir(parents=True, exist_ok=True)
+            plot_case(plotted, Path(a.out) / f"{name}.png", title=f"{name}: {a.checkpoint}, episode 0 (seed {a.seed})",
+                      window=a.plot_seconds, s_band=(run_cfg.eval.s_min, run_cfg.eval.s_max))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
@@ -202,6 +218,40 @@ def main(argv=None) -> dict:
     (out / "generalization.md").write_text(md)
     print(md)
     return results
+
+
+def plot_case(traces: dict, path, *, title: str, window=None, s_band=(5.0, 40.0)) -> None:
+    """Speed (with the head's), gap to the leader (with the band) and executed command of episode 0 for each
+    controller of ``traces`` (label -> :class:`~mixed_traffic.evaluation.harness.Trace`); a contact shows
+    as a gap reaching 0."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    first = next(iter(traces.values()))
+    t = first.time[0]
+    k = first.valid[0] if window is None else first.valid[0] & (t >= window[0]) & (t <= window[1])
+    ax[0].plot(t[k], first.head_speed[0][k], color="0.6", lw=2.5, label="head")
+    for label, tr in traces.items():
+        m = k & tr.valid[0]
+        ls = "--" if label == "policy + layer" else "-"
+        ax[0].plot(t[m], tr.cav_speed[0][m], ls=ls, label=label)
+        ax[1].plot(t[m], tr.gap[0][m], ls=ls, label=label)
+        ax[2].plot(t[m], tr.cav_accel[0][m], ls=ls, lw=0.9, label=label)
+    for s in s_band:
+        ax[1].axhline(s, color="r", lw=0.8, ls=":")
+    ax[1].axhline(0.0, color="k", lw=0.8)
+    ax[0].set_ylabel("speed (m/s)")
+    ax[1].set_ylabel("gap to leader (m)")
+    ax[2].set_ylabel("executed accel (m/s²)")
+    ax[2].set_xlabel("time (s)")
+    ax[0].legend(fontsize=8, loc="upper right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -401,12 +401,16 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     mod = benchmark_script("ring_generalization")
     out = tmp_path / "gen"
     res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
-                    "--baselines", "idm", "--baselines-with-layer", "--out", str(out)])
+                    "--baselines", "idm", "--baselines-with-layer", "--plot", "--out", str(out)])
     rows = res["fast_steps"]
     assert rows["idm"]["intervention_rate"] == 0.0 and rows["idm + layer"]["intervention_rate"] > 0.0
     assert rows["idm + layer"]["max_head_gap"] < rows["idm"]["max_head_gap"]
     assert "idm + layer" in json.loads((out / "generalization.json").read_text())["results"]["fast_steps"]
     assert "| fast_steps | IDM, + layer |" in (out / "generalization.md").read_text()
+    assert (out / "fast_steps.png").stat().st_size > 10_000  # --plot: episode 0 of the case
+    with pytest.raises(SystemExit, match=r"brake_from_30.*allowed: .*brake_from_25"):  # before any rollout
+        mod.main(["--checkpoint", str(run), "--cases", "brake_from_30", "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
 
 
 def test_residual_base_factory_drives_the_runs_base_alone_and_refuses_a_run_without_one():
