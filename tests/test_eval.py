@@ -216,8 +216,10 @@ def test_report_from_a_trained_checkpoint(tmp_path):
 
 def test_evaluate_needs_exactly_one_policy(tmp_path):
     cfg = compose(["experiment=ring_ppo"])
-    with pytest.raises(ValueError, match="exactly one"):
+    with pytest.raises(ValueError, match=r"checkpoint: neither .* exactly one .*controller=idm\|ovm\|soft\|base"):
         evaluate_and_report(cfg, tmp_path)
+    with pytest.raises(ValueError, match=r"checkpoint: both are set"):
+        evaluate_and_report(cfg, tmp_path, checkpoint=str(tmp_path), controller="idm")
 
 
 def test_mt_eval_cli_with_a_classical_controller(tmp_path):

@@ -32,7 +32,11 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     checkpoint = checkpoint if checkpoint is not None else cfg.get("checkpoint")
     controller = controller if controller is not None else cfg.get("controller")
     if (checkpoint is None) == (controller is None):
-        raise ValueError("evaluate: give exactly one of checkpoint=PATH or controller=idm|ovm")
+        problem = ("neither checkpoint nor controller is set" if checkpoint is None
+                   else f"both are set ({checkpoint!r} and controller={controller!r})")
+        raise ConfigError("checkpoint", f"{problem}: give exactly one of the two",
+                          "checkpoint=PATH (a run directory or a .pt), or controller=idm|ovm|soft|base "
+                          "(NAME:key=number;... for parameters)")
     if (checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg).env.scenario == "intersection":
         from mixed_traffic.intersection.evaluate import evaluate_run
 
