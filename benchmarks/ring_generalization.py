@@ -144,9 +144,10 @@ def main(argv=None) -> dict:
     p.add_argument("--plot-seconds", type=float, nargs=2, default=None, metavar=("T0", "T1"),
                    help="time window of --plot (default: the whole episode)")
     a = p.parse_args(argv)
-    unknown = sorted(set(a.cases or ()) - set(cases(a.seconds)))
+    all_cases = cases(a.seconds)
+    unknown = sorted(set(a.cases or ()) - set(all_cases))
     if unknown:
-        raise SystemExit(f"--cases: {unknown} are not cases; allowed: {list(cases(a.seconds))}")
+        raise SystemExit(f"--cases: {unknown} are not cases; allowed: {list(all_cases)}")
 
     import torch
     from omegaconf import open_dict
@@ -162,7 +163,6 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
     factory = policy_factory_from_state(run_cfg, state)
-    all_cases = cases(a.seconds)
     names = a.cases or list(all_cases)
     results = {}
     for name in names:

@@ -5,7 +5,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import open_dict
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
@@ -494,10 +493,9 @@ def _brake_from_25(stop_gap, layer: bool):
     from mixed_traffic.evaluation.policies import residual_base_factory
     from mixed_traffic.training.builders import make_transformed_env
 
+    chain = "[safety_layer,residual_idm]" if layer else "[non_negative_reward,residual_idm]"
     cfg = compose(["experiment=ring_lagrangian_ppo_band", f"transforms.residual.stop_gap={stop_gap}",
-                   "transforms.chain=[safety_layer]" if layer else "transforms.chain=[non_negative_reward]"])
-    with open_dict(cfg):
-        cfg.transforms.chain = list(cfg.transforms.chain) + ["residual_idm"]  # for the factory's check only
+                   f"transforms.chain={chain}"])
     env = make_transformed_env(cfg, num_envs=2, seed=0, without=("residual_idm",), profile="emergency_brake",
                                profile_kwargs={"start": 5.0, "v_cruise": 25.0, "v_low": 0.0},
                                v_init=25.0, init_spacing=22.0)
@@ -529,9 +527,7 @@ def test_stopping_envelope_leaves_everyday_driving_alone():
     accel = {}
     for gap in ("null", "5.0"):
         cfg = compose(["experiment=ring_lagrangian_ppo_band", f"transforms.residual.stop_gap={gap}",
-                       "transforms.chain=[non_negative_reward]"])
-        with open_dict(cfg):
-            cfg.transforms.chain = ["non_negative_reward", "residual_idm"]  # for the factory's check only
+                       "transforms.chain=[non_negative_reward,residual_idm]"])
         env = make_transformed_env(cfg, num_envs=4, seed=0, without=("residual_idm",), profile="random_steps")
         accel[gap] = env.rollout(600, residual_base_factory(cfg)(env), break_when_any_done=False)["next", "cav", "accel"]
     assert torch.equal(accel["null"], accel["5.0"])

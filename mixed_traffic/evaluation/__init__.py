@@ -57,12 +57,13 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         eval_cfg = run_cfg
     else:
         if controller == "base":  # the experiment's residual base driving alone: what the learned residual adds to
-            if "residual_idm" not in cfg.transforms.chain:
-                raise ConfigError("controller", f"'base' needs a residual base, but transforms.chain "
-                                  f"{list(cfg.transforms.chain)} lacks residual_idm",
+            try:
+                factory = residual_base_factory(cfg)  # refuses a chain without residual_idm
+            except ValueError as e:
+                raise ConfigError("controller", f"'base': {e}",
                                   "base with an experiment that trains a residual (e.g. "
-                                  "experiment=ring_lagrangian_ppo_band_stop), or a classical controller (idm, ovm, soft)")
-            factory = residual_base_factory(cfg)
+                                  "experiment=ring_lagrangian_ppo_band_stop), or a classical controller (idm, ovm, soft)"
+                                  ) from None
         else:
             factory = classic_factory(controller)
         label = f"{controller}-as-CAV"
