@@ -49,6 +49,10 @@ def main(argv=None) -> dict:
     p.add_argument("--plot", default=None,
                    help="PNG: episode 0 of each case, speed, gap and command of the policy without its layer, "
                         "IDM-as-CAV and the clairvoyant band + RMSE (linf) sequence")
+    p.add_argument("--stop-gap", type=float, default=None, metavar="G",
+                   help="also the column 'band + stopping (G m)': every step in the stopping-safe set of the "
+                        "head's braking bound (a lower bound of the jerk of any controller that no head within "
+                        "that bound can bring below G m)")
     p.add_argument("--plot-seconds", type=float, nargs=2, default=(20.0, 110.0), help="time window of --plot")
     a = p.parse_args(argv)
 
@@ -85,11 +89,16 @@ def main(argv=None) -> dict:
             row[label] = rep["profiles"][prof]["per_episode"]["mean_abs_jerk"]
         e = cfg.eval
         dt = round(float(traces["IDM-as-CAV"].time[0, 0]), 6)  # the trace's float32 time
-        lo, hi = eval_scenario(cfg, prof).cav_accel_bounds
+        scenario = eval_scenario(cfg, prof)
+        lo, hi = scenario.cav_accel_bounds
         steady = steady_mask(traces["IDM-as-CAV"], dt=dt, warmup=e.warmup_seconds, settle=e.settle_seconds)
-        for label, kw in (("clairvoyant: band", {}),
-                          ("clairvoyant: band + rmse (l1)", {"steady": steady, "rmse": e.rmse_bar, "norm": "l1"}),
-                          ("clairvoyant: band + rmse (linf)", {"steady": steady, "rmse": e.rmse_bar, "norm": "linf"})):
+        programs = [("clairvoyant: band", {}),
+                    ("clairvoyant: band + rmse (l1)", {"steady": steady, "rmse": e.rmse_bar, "norm": "l1"}),
+                    ("clairvoyant: band + rmse (linf)", {"steady": steady, "rmse": e.rmse_bar, "norm": "linf"})]
+        if a.stop_gap is not None:
+            programs.append((f"clairvoyant: band + stopping ({a.stop_gap:g} m)",
+                             {"stop_gap": a.stop_gap, "leader_brake": -float(scenario.head_accel_bounds[0])}))
+        for label, kw in programs:
             vals = []
             for r in range(a.episodes):
                 try:

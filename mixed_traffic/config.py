@@ -160,6 +160,9 @@ class ResidualConfig:
     every future gap at or above ``stop_gap`` if the leader brakes as hard as it can from the next step on
     (``mixed_traffic.controllers.classic.StoppingEnvelope``, the safety layer's stopping rule as a term of
     the base); null: no envelope.
+    ``envelope_fade`` (needs ``stop_gap``): a residual that accelerates fades out as the base nears its
+    envelope (``ResidualAction(room_key=...)``), so base + residual never exceeds it; a braking residual is
+    left as it is.
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -173,6 +176,7 @@ class ResidualConfig:
     top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
+    envelope_fade: bool = False  # the residual's push fades out where the base nears its envelope
     saturate_base: bool = True
 
 

@@ -132,6 +132,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
+    "transforms.residual.envelope_fade": OneOf((True, False)),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -261,6 +262,10 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                                  and 0 <= fade[0] < fade[1]):
         raise ConfigError("transforms.residual.fade_speeds", repr(fade),
                           "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
+    if (OmegaConf.select(cfg, "transforms.residual.envelope_fade", default=False)
+            and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None):
+        raise ConfigError("transforms.residual.envelope_fade", "true with stop_gap null",
+                          "false, or true with a stop_gap (the envelope it fades against)")
     for key in ("high_speed", "top_speed"):
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

@@ -308,7 +308,8 @@ def test_band_experiment_adds_a_third_law_and_the_fade_and_nothing_else():
 
 def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
     """``experiment=ring_lagrangian_ppo_band_stop`` is ``ring_lagrangian_ppo_band`` with ``stop_gap`` 5 m (the
-    safety layer's s_min) and nothing else; the envelope wraps the built base; a gap of 0 fails at start-up."""
+    safety layer's s_min) and ``envelope_fade`` and nothing else; the envelope wraps the built base, whose
+    room the residual reads; a gap of 0, or a fade without a gap, fails at start-up naming the field."""
     from mixed_traffic.controllers.classic import SpeedScheduledCAV, StoppingEnvelope
     from mixed_traffic.training.builders import make_transformed_env
     from mixed_traffic.validation import ConfigError, validate_config
@@ -316,13 +317,17 @@ def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
 
     stop, band = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_band_stop", "ring_lagrangian_ppo_band"))
     assert stop.transforms.residual.stop_gap == stop.transforms.safety_layer.s_min == 5.0
-    assert band.transforms.residual.stop_gap is None
+    assert band.transforms.residual.stop_gap is None and stop.transforms.residual.envelope_fade
     with open_dict(stop):
         stop.transforms.residual.stop_gap, stop.name = None, band.name
+        stop.transforms.residual.envelope_fade = False
     assert OmegaConf.to_container(stop) == OmegaConf.to_container(band)
     cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop"]))
     res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
-    env_ = res[0].base.module
+    env_ = res[0].base.module.envelope
     assert isinstance(env_, StoppingEnvelope) and isinstance(env_.law, SpeedScheduledCAV) and env_.stop_gap == 5.0
+    assert res[0].room_key == res[0].base.out_keys[1]
     with pytest.raises(ConfigError, match=r"transforms\.residual\.stop_gap"):
         validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.stop_gap=0"]))
+    with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.envelope_fade=true"]))

@@ -142,3 +142,28 @@ def test_the_module_example_runs():
 
     result = doctest.testmod(oracle)
     assert result.attempted >= 3 and result.failed == 0
+
+
+def test_stopping_constraint_holds_the_layers_own_rule_at_every_step_and_costs_jerk():
+    """``stop_gap``: every step of the optimum ends in the stopping-safe set, checked with the safety layer's
+    own rule (``safe_accel_upper``, which the program does not call); the constraint can only raise the
+    optimum; a stop_gap without the head's braking bound fails, naming it."""
+    from transforms.safety_layer import safe_accel_upper
+
+    head = torch.cat([torch.full((150,), 27.0), 27.0 - 0.3 * torch.arange(1, 21), torch.full((150,), 21.0),
+                      21.0 + 0.2 * torch.arange(1, 31), torch.full((150,), 27.0)]).double()
+    kw = dict(v_start=27.0, gap_start=30.0, dt=DT, warmup=5.0, s_min=5.0, s_max=40.0)
+    free = least_jerk(head, **kw)
+    safe = least_jerk(head, stop_gap=5.0, leader_brake=3.0, **kw)
+    v = torch.cat([torch.tensor([27.0]).double(), safe.speed])
+    g = torch.cat([torch.tensor([30.0]).double(), safe.gap])
+    vh = torch.cat([head[:1], head])
+    upper = safe_accel_upper(g[1:-1], v[1:-1], vh[1:-1], s_min=5.0, dt=DT, brake=3.0, leader_brake=3.0)
+    assert float((safe.accel[1:] - upper).max()) <= 1e-6  # the first step is left free
+    free_v = torch.cat([torch.tensor([27.0]).double(), free.speed])
+    free_g = torch.cat([torch.tensor([30.0]).double(), free.gap])
+    free_upper = safe_accel_upper(free_g[1:-1], free_v[1:-1], vh[1:-1], s_min=5.0, dt=DT, brake=3.0, leader_brake=3.0)
+    assert float((free.accel[1:] - free_upper).max()) > 0.1  # without it the optimum leaves the safe set
+    assert safe.jerk > free.jerk
+    with pytest.raises(ValueError, match="leader_brake"):
+        least_jerk(head, stop_gap=5.0, **kw)

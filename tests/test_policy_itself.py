@@ -531,3 +531,38 @@ def test_stopping_envelope_leaves_everyday_driving_alone():
         env = make_transformed_env(cfg, num_envs=4, seed=0, without=("residual_idm",), profile="random_steps")
         accel[gap] = env.rollout(600, residual_base_factory(cfg)(env), break_when_any_done=False)["next", "cav", "accel"]
     assert torch.equal(accel["null"], accel["5.0"])
+
+
+def _full_throttle_residual_behind_a_stop(fade: bool):
+    """``ring_lagrangian_ppo_band_stop`` without a layer, driven by a residual that always asks for its
+    largest acceleration (an adversarial policy), behind the head of :func:`_brake_from_25` braking from
+    18 m/s (inside the residual's speeds) to a standstill; 30 s."""
+    from mixed_traffic.training.builders import make_transformed_env
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_band_stop", f"transforms.residual.envelope_fade={fade}",
+                   "transforms.chain=[non_negative_reward,residual_idm]", "transforms.residual.engage_seconds=0"])
+    env = make_transformed_env(cfg, num_envs=2, seed=0, profile="emergency_brake",
+                               profile_kwargs={"start": 5.0, "v_cruise": 18.0, "v_low": 0.0},
+                               v_init=18.0, init_spacing=22.0)
+    high = env.action_spec.space.high
+
+    def throttle(td):
+        return td.set("action", high.expand(td.batch_size + high.shape[-1:]).clone())
+
+    return env.rollout(300, throttle, break_when_any_done=False)
+
+
+def test_envelope_fade_keeps_base_plus_residual_inside_the_stopping_envelope_whatever_the_residual():
+    """``transforms.residual.envelope_fade``: the policy itself (base plus learned residual, no layer) keeps
+    every gap at or above ``stop_gap`` when the head brakes to a stop, even with a residual that always
+    pushes its hardest; without the fade that residual takes the gap under it. Away from the envelope the
+    residual acts in full (a first command is the base's plus the residual's largest value, 1.5 m/s^2), and
+    it is only ever faded, never turned into braking."""
+    faded = _full_throttle_residual_behind_a_stop(True)
+    assert not bool(faded["next", "collision"].any())
+    assert float(faded["next", "cav", "gap"].min()) >= 5.0 - 1e-3
+    base = faded["next", "residual", "base_action"]
+    added = faded["next", "cav", "accel"] - base
+    assert float(added[:, 0].max()) == pytest.approx(1.5, abs=1e-4) and float(added.min()) >= -1e-4
+    bare = _full_throttle_residual_behind_a_stop(False)
+    assert float(bare["next", "cav", "gap"].min()) < 4.0

@@ -46,6 +46,12 @@ class ResidualAction(Transform):
             Set ``v_full`` to the top of the speeds the policy trained on: beyond them the base drives,
             instead of a policy extrapolating outside its training distribution.
         speed_key: the car's own speed (m/s) read with ``fade_speeds`` (default ``("cav", "speed")``).
+        room_key: an entry the base writes beside its action: how far (m/s^2, >= 0) its command lies below
+            a bound of its own (e.g. the stopping envelope of
+            :func:`~mixed_traffic.controllers.classic.stopping_envelope_policy`). A residual that
+            accelerates is then scaled by ``clamp(room / r_max, 0, 1)``, ``r_max = weight * max|policy
+            bound|`` its largest value, so it fades out as the base nears the bound and the sum never
+            exceeds it; a braking residual is left as it is (default None: no such fade).
 
     Example:
         >>> from mixed_traffic import make_env
@@ -65,7 +71,7 @@ class ResidualAction(Transform):
                  low: float | None = None, high: float | None = None,
                  policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), fade_speeds: tuple[float, float] | None = None,
-                 speed_key: NestedKey = ("cav", "speed")):
+                 speed_key: NestedKey = ("cav", "speed"), room_key: NestedKey | None = None):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if not engage_seconds >= 0:
@@ -84,7 +90,7 @@ class ResidualAction(Transform):
         self.weight = float(weight)
         self.engage_seconds, self.time_key = float(engage_seconds), time_key
         self.fade_speeds = None if fade_speeds is None else (float(fade_speeds[0]), float(fade_speeds[1]))
-        self.speed_key = speed_key
+        self.speed_key, self.room_key = speed_key, room_key
         self.action_key = action_key
         if base_out_key is None:
             out_keys = getattr(base, "out_keys", None)
@@ -103,10 +109,19 @@ class ResidualAction(Transform):
         return torch.as_tensor(low).to(like), torch.as_tensor(high).to(like)
 
     def base_action(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return self._run_base(tensordict).get(self.base_out_key)
+
+    def _run_base(self, tensordict: TensorDictBase) -> TensorDictBase:
         # no torch.no_grad here: a differentiable base (e.g. the NNMPC) passes the gradient
         # through to the state it reads (analytic policy gradients); a frozen one adds no parameters
-        out = self.base(tensordict.clone(False))
-        return out.get(self.base_out_key)
+        return self.base(tensordict.clone(False))
+
+    def _residual_max(self, like: torch.Tensor) -> torch.Tensor:
+        if self.policy_bounds is not None:
+            low, high = (torch.as_tensor(b).to(like) for b in self.policy_bounds)
+        else:
+            low, high = self._bounds(like)
+        return self.weight * torch.maximum(low.abs(), high.abs())
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         a_res = tensordict.get(self.action_key, None)
@@ -114,7 +129,8 @@ class ResidualAction(Transform):
             if self.missing_tolerance:
                 return tensordict
             raise KeyError(f"ResidualAction: {self.action_key!r} not found in the input tensordict")
-        a_base = self.base_action(tensordict).to(a_res.dtype).reshape(a_res.shape)
+        base_out = self._run_base(tensordict)
+        a_base = base_out.get(self.base_out_key).to(a_res.dtype).reshape(a_res.shape)
         low, high = self._bounds(a_res)
         weight = self.weight
         if self.engage_seconds > 0:
@@ -124,7 +140,13 @@ class ResidualAction(Transform):
             v_full, v_zero = self.fade_speeds
             v = tensordict.get(self.speed_key).to(a_res.dtype).reshape(a_res.shape)
             weight = weight * ((v_zero - v) / (v_zero - v_full)).clamp(0.0, 1.0)
-        executed = torch.minimum(torch.maximum(a_base + weight * a_res, low), high)
+        residual = weight * a_res
+        if self.room_key is not None:
+            room = base_out.get(self.room_key).to(a_res.dtype).reshape(a_res.shape).clamp_min(0.0)
+            fade = (room / self._residual_max(a_res).clamp_min(1e-9)).clamp(max=1.0)
+            residual = torch.where(residual > 0, torch.minimum(residual * fade, room), residual)  # the min: an
+            # action outside the policy's bounds
+        executed = torch.minimum(torch.maximum(a_base + residual, low), high)
         tensordict.set(self.action_key, executed)
         tensordict.set(self.base_action_key, a_base)
         return tensordict
@@ -147,4 +169,5 @@ class ResidualAction(Transform):
     def __repr__(self) -> str:
         engage = f", engage_seconds={self.engage_seconds}" if self.engage_seconds else ""
         fade = f", fade_speeds={self.fade_speeds}" if self.fade_speeds else ""
-        return f"{type(self).__name__}(weight={self.weight}{engage}{fade}, base={type(self.base).__name__})"
+        room = f", room_key={self.room_key}" if self.room_key is not None else ""
+        return f"{type(self).__name__}(weight={self.weight}{engage}{fade}{room}, base={type(self.base).__name__})"

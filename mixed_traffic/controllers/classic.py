@@ -18,6 +18,7 @@ import dataclasses
 
 import torch
 from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch import nn
 
 from mixed_traffic.physics import IDMParams, OVMParams, SoftFollowerParams, car_following_accel, soft_follower_accel
@@ -114,6 +115,9 @@ class StoppingEnvelope(nn.Module):
     of Gipps' model. From a safe state the law is then collision-free whatever the leader does within its
     bound, so a residual over it that is faded out (``ResidualAction(fade_speeds=...)``) drives without a
     layer there. Below the bound the law is unchanged. TorchRL has no car-following envelope.
+
+    :meth:`room` is how far the command lies below the bound (``a_stop - command``, >= 0): a residual over
+    this law that adds at most that much stays inside the envelope (``ResidualAction(room_key=...)``).
     """
 
     def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float):
@@ -126,16 +130,40 @@ class StoppingEnvelope(nn.Module):
         self.law, self.stop_gap, self.dt, self.brake, self.low = law, float(stop_gap), float(dt), float(brake), float(low)
         self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+    def bound(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """``a_stop`` (floored at the car's braking bound: below it only from an already unsafe state)."""
         upper = self._upper(gap, speed, leader_speed, s_min=self.stop_gap, dt=self.dt, brake=self.brake,
                             leader_brake=self.leader_brake.to(speed))
-        return torch.minimum(self.law(gap, speed, leader_speed), upper.clamp_min(self.low))
+        return upper.clamp_min(self.low)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        return torch.minimum(self.law(gap, speed, leader_speed), self.bound(gap, speed, leader_speed))
+
+    def room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """``a_stop`` minus the command (m/s^2, >= 0; 0 where the envelope binds)."""
+        upper = self.bound(gap, speed, leader_speed)
+        return upper - torch.minimum(self.law(gap, speed, leader_speed), upper)
 
 
-def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float) -> TensorDictModule:
+class _EnvelopeRoom(nn.Module):
+    """The command and its :meth:`StoppingEnvelope.room`, one evaluation of the law."""
+
+    def __init__(self, envelope: StoppingEnvelope):
+        super().__init__()
+        self.envelope = envelope
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
+        upper = self.envelope.bound(gap, speed, leader_speed)
+        command = torch.minimum(self.envelope.law(gap, speed, leader_speed), upper)
+        return command, upper - command
+
+
+def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float,
+                             room_key: NestedKey | None = None) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
-    (the head's, a human's or a CAV's; as the safety layer reads them).
+    (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
+    writes the envelope's :meth:`~StoppingEnvelope.room` there.
 
     >>> from mixed_traffic import make_env
     >>> env = make_env("ring", batch_size=2, seed=0)
@@ -147,9 +175,12 @@ def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float) -> 
 
     scenario = env.scenario
     low, _ = action_bounds(env)
-    return TensorDictModule(StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
-                                             leader_brake=scenario_leader_brake(scenario), low=low),
-                            in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
+    envelope = StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
+                                leader_brake=scenario_leader_brake(scenario), low=low)
+    if room_key is None:
+        return TensorDictModule(envelope, in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
+    return TensorDictModule(_EnvelopeRoom(envelope), in_keys=list(policy.in_keys),
+                            out_keys=[*policy.out_keys, room_key])
 
 
 def action_bounds(env) -> tuple[float, float]:

@@ -55,8 +55,19 @@ def _check(name: str, ok: bool, allowed: str, got) -> None:
 
 def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmup: float, s_min: float,
                s_max: float | None, accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
-               steady=None, rmse: float | None = None, norm: str = "l1", time_limit: float = 120.0) -> OracleResult:
+               steady=None, rmse: float | None = None, norm: str = "l1", stop_gap: float | None = None,
+               leader_brake: float | None = None, time_limit: float = 120.0) -> OracleResult:
     """Solve the episode's least-jerk program (module docstring).
+
+    ``stop_gap`` (m; with ``leader_brake``, m/s^2 > 0): every step must also end in the stopping-safe set,
+    the safety layer's ``"stopping"`` rule (:func:`transforms.safety_layer.safe_accel_upper`): if the head
+    braked at ``leader_brake`` from that step on, the CAV braking at ``min(-accel_bounds[0], leader_brake)``
+    would keep every future gap at or above ``stop_gap``. A causal CAV that cannot know whether the head
+    will stop must keep this at every step to be collision-free whatever the head does within its braking
+    bound, so the optimum is then a lower bound of the jerk of every such controller on the episode. The
+    rule's convex, piecewise-linear braking distance enters as its linear pieces (those within 15 m/s of
+    the head's speed at each step: a relaxation, so the bound stays a bound; the first step, whose
+    pre-step head speed the trace does not hold, is left free).
 
     ``head_speed``: the head's speed after each step (``[N]``, a trace's ``head_speed`` row);
     ``v_start`` / ``gap_start``: the CAV's speed and gap before the first step; ``warmup``: seconds
@@ -89,6 +100,10 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
         _check("steady", mask.numel() == N, f"a mask of {N} values", mask.numel())
         st = np.flatnonzero(mask.numpy())
     S = len(st)
+    if stop_gap is not None:
+        _check("stop_gap", stop_gap >= 0, ">= 0 (m)", stop_gap)
+        _check("leader_brake", leader_brake is not None and leader_brake > 0, "> 0 (m/s^2) with stop_gap",
+               leader_brake)
 
     # variables: a (N), v (N), g (N), u (N - 1) >= |a_t - a_{t-1}|, e (S) >= |v - v_head| on steady samples
     Z = lambda r, c: sp.csr_matrix((r, c))  # noqa: E731
@@ -109,6 +124,10 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
         if norm == "l1":
             rows.append(sp.hstack([Z(1, 4 * N - 1), sp.csr_matrix(np.full((1, S), 1.0 / S))]))
             b_ub.append(np.array([rmse]))
+    if stop_gap is not None:
+        r, bu = _stopping_rows(vh, dt=dt, stop_gap=stop_gap, brake=min(-lo, leader_brake), leader_brake=leader_brake)
+        rows.append(sp.hstack([r, Z(r.shape[0], N - 1 + S)]))
+        b_ub.append(bu)
     after = (np.arange(1, N + 1) * dt) >= warmup - 1e-9
     bounds = ([(lo, hi)] * N + [(0.0, None)] * N
               + [((s_min if a else gap_floor), (s_max if a and s_max is not None else None)) for a in after]
@@ -131,9 +150,41 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                         status=res.message)
 
 
+def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, leader_brake: float,
+                   window: float = 15.0):
+    """``A x <= b`` over ``x = (a, v, g)`` (``[3N]``) for steps ``1..N-1``: the post-step speed ``v_t`` within
+    the stopping rule of the pre-step state ``(g_{t-1}, vh_{t-1})``. With ``vl1`` the head's speed after one
+    braking step: ``v_t <= vl1 + (g_{t-1} - G) / dt`` and ``F(v_t) <= g_{t-1} - G + vl1 dt + D(vl1)``, where
+    ``F(u) = u dt + D(u, b)`` is the maximum of its segment lines ``dt (m + 1) u - dt h m (m + 1) / 2``
+    (``h = b dt``; ``transforms.safety_layer._max_speed_within_distance``)."""
+    from scipy import sparse as sp
+
+    from transforms.safety_layer import braking_distance
+
+    N = vh.shape[0]
+    h = brake * dt
+    vl1 = np.maximum(vh[:-1] - leader_brake * dt, 0.0)
+    c0 = vl1 * dt + braking_distance(torch.as_tensor(vl1), leader_brake, dt).numpy() - stop_gap
+    rows, cols, vals, b = [], [], [], []
+    k = 0
+    for t in range(1, N):
+        lines = [None] + list(range(max(0, int((vh[t - 1] - window) / h)), int((vh[t - 1] + window) / h) + 2))
+        for m in lines:  # None: the next gap itself
+            coef = 1.0 if m is None else dt * (m + 1)
+            rhs = vl1[t - 1] * dt - stop_gap if m is None else c0[t - 1] + dt * h * m * (m + 1) / 2
+            scale = dt if m is None else 1.0  # v_t dt - g_{t-1} <= vl1 dt - G
+            rows += [k, k]
+            cols += [N + t, 2 * N + t - 1]
+            vals += [coef * scale, -1.0]
+            b.append(rhs)
+            k += 1
+    return sp.csr_matrix((vals, (rows, cols)), shape=(k, 3 * N)), np.asarray(b)
+
+
 def least_jerk_of_trace(trace, row: int, *, dt: float, warmup: float, s_min: float, s_max: float | None,
                         accel_bounds: tuple[float, float] = (-3.0, 3.0), steady=None, rmse: float | None = None,
-                        norm: str = "l1") -> OracleResult:
+                        norm: str = "l1", stop_gap: float | None = None,
+                        leader_brake: float | None = None) -> OracleResult:
     """:func:`least_jerk` on episode ``row`` of a :class:`~mixed_traffic.evaluation.harness.Trace` (its valid
     steps); the CAV's start is recovered from its first step (``"euler"`` update)."""
     n = int(trace.valid[row].sum())
@@ -145,7 +196,8 @@ def least_jerk_of_trace(trace, row: int, *, dt: float, warmup: float, s_min: flo
     gap_start = float(gap[0] - dt * (vh[0] - v[0]))
     mask = None if steady is None else torch.as_tensor(steady)[row, :n]
     return least_jerk(vh, v_start=max(v_start, 0.0), gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
-                      s_max=s_max, accel_bounds=accel_bounds, steady=mask, rmse=rmse, norm=norm)
+                      s_max=s_max, accel_bounds=accel_bounds, steady=mask, rmse=rmse, norm=norm,
+                      stop_gap=stop_gap, leader_brake=leader_brake)
 
 
 def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tensor:

@@ -124,19 +124,24 @@ def _residual_idm(tcfg, env):
 
     r = tcfg.residual
     try:
-        base = residual_base(r, env, saturate=r.get("saturate_base", True))
+        room_key = ENVELOPE_ROOM_KEY if r.get("envelope_fade", False) else None
+        base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key)
         fade = r.get("fade_speeds")
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
-                              fade_speeds=None if fade is None else tuple(fade))
+                              fade_speeds=None if fade is None else tuple(fade), room_key=room_key)
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
 
-def residual_base(rcfg, env, *, saturate: bool = True):
+ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope
+
+
+def residual_base(rcfg, env, *, saturate: bool = True, room_key=None):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
-    inside the stopping envelope of ``stop_gap`` when it is set. ``saturate=False``:
-    its command is not clipped to the env's action bounds (``ResidualAction`` clips the sum)."""
+    inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
+    when given). ``saturate=False``: its command is not clipped to the env's action bounds
+    (``ResidualAction`` clips the sum)."""
     from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
 
     bounds = {} if saturate else {"low": -math.inf, "high": math.inf}
@@ -151,7 +156,7 @@ def residual_base(rcfg, env, *, saturate: bool = True):
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
     if rcfg.get("stop_gap") is not None:
-        base = stopping_envelope_policy(base, env, rcfg.stop_gap)
+        base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key)
     return base
 
 
