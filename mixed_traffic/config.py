@@ -162,7 +162,9 @@ class ResidualConfig:
     the base); null: no envelope.
     ``envelope_fade`` (needs ``stop_gap``): a residual that accelerates fades out as the base nears its
     envelope (``ResidualAction(room_key=...)``), so base + residual never exceeds it; a braking residual is
-    left as it is.
+    left as it is. ``envelope_fade_slack`` (m, > 0, or null): while the car closes on its leader it also
+    fades linearly as the envelope's margin in metres (``StoppingEnvelope.slack``) falls from this value to
+    0, so the fade begins before the bound is reached; null: the room below the envelope alone.
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -177,6 +179,7 @@ class ResidualConfig:
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     envelope_fade: bool = False  # the residual's push fades out where the base nears its envelope
+    envelope_fade_slack: float | None = None  # m, > 0: ... from this margin of the envelope on; null: at the bound
     saturate_base: bool = True
 
 

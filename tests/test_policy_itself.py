@@ -566,3 +566,21 @@ def test_envelope_fade_keeps_base_plus_residual_inside_the_stopping_envelope_wha
     assert float(added[:, 0].max()) == pytest.approx(1.5, abs=1e-4) and float(added.min()) >= -1e-4
     bare = _full_throttle_residual_behind_a_stop(False)
     assert float(bare["next", "cav", "gap"].min()) < 4.0
+
+
+def test_envelope_slack_is_nonnegative_exactly_where_holding_speed_stays_inside_the_layers_rule():
+    """``StoppingEnvelope.slack`` (m) is >= 0 exactly where the safety layer's own stopping rule
+    (``safe_accel_upper``) allows holding the speed for a step (its bound >= 0), on random states."""
+    from mixed_traffic.controllers.classic import StoppingEnvelope
+    from transforms.safety_layer import safe_accel_upper
+
+    g = torch.Generator().manual_seed(0)
+    gap, v, vl = (torch.rand(4000, generator=g) * 40.0 + 1.0, torch.rand(4000, generator=g) * 30.0,
+                  torch.rand(4000, generator=g) * 30.0)
+    env_ = StoppingEnvelope(lambda *x: torch.zeros_like(x[1]), stop_gap=5.0, dt=0.1, brake=3.0, leader_brake=3.0,
+                            low=-3.0)
+    slack = env_.slack(gap, v, vl)
+    upper = safe_accel_upper(gap, v, vl, s_min=5.0, dt=0.1, brake=3.0, leader_brake=3.0)
+    clear = (slack.abs() > 1e-3) & (upper.abs() > 1e-3)
+    assert bool(clear.float().mean() > 0.95) and bool(((slack > 0) == (upper > 0))[clear].all())
+    assert bool((slack > 0).any()) and bool((slack < 0).any())

@@ -315,7 +315,8 @@ def test_residual_fades_out_above_the_speeds_it_trained_on():
 def test_residual_room_key_fades_an_accelerating_residual_to_the_room_the_base_leaves():
     """``room_key``: a residual that accelerates is scaled by ``room / r_max`` (``r_max = weight * max|policy
     bound|``), and never adds more than the room (an action outside the policy's bounds included); a
-    braking residual and one with room to spare are left as they are (hand values)."""
+    braking residual and one with room to spare are left as they are; with ``slack_key`` / ``fade_slack`` the
+    smaller of that fade and ``slack / fade_slack`` applies (hand values)."""
     from tensordict.nn import TensorDictModule
 
     room = torch.tensor([[1.0], [0.25], [0.0], [0.1]])
@@ -328,6 +329,21 @@ def test_residual_room_key_fades_an_accelerating_residual_to_the_room_the_base_l
     td = env.rollout(3, lambda td: td.set("action", res.clone()))
     expect = torch.tensor([0.5, 0.25, -0.5, 0.1]).view(4, 1, 1).expand(4, 3, 1)
     assert torch.allclose(td["next", "cav", "accel"], expect, atol=1e-5)
+    # with a margin (m) and fade_slack 2: the smaller of the two fades
+    slack = torch.tensor([[1.0], [2.0], [0.0], [-1.0]])
+    base = TensorDictModule(lambda v: (torch.zeros_like(v), room.expand_as(v), slack.expand_as(v)),
+                            in_keys=[("cav", "speed")],
+                            out_keys=["action", ("residual", "envelope_room"), ("residual", "envelope_slack")])
+    env = TransformedEnv(make_env("ring", batch_size=4, seed=0),
+                         ResidualAction(base, weight=0.5, policy_bounds=(-1.0, 1.0),
+                                        room_key=("residual", "envelope_room"),
+                                        slack_key=("residual", "envelope_slack"), fade_slack=2.0))
+    td = env.rollout(3, lambda td: td.set("action", res.clone()))
+    expect = torch.tensor([0.25, 0.25, -0.5, 0.0]).view(4, 1, 1).expand(4, 3, 1)
+    assert torch.allclose(td["next", "cav", "accel"], expect, atol=1e-5)
+    with pytest.raises(ValueError, match="fade_slack"):
+        ResidualAction(base, room_key=("residual", "envelope_room"), slack_key=("residual", "envelope_slack"),
+                       fade_slack=0.0)
 
 
 # ----------------------------------------------------------------------------- docstrings

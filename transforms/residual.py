@@ -52,6 +52,11 @@ class ResidualAction(Transform):
             accelerates is then scaled by ``clamp(room / r_max, 0, 1)``, ``r_max = weight * max|policy
             bound|`` its largest value, so it fades out as the base nears the bound and the sum never
             exceeds it; a braking residual is left as it is (default None: no such fade).
+        slack_key, fade_slack: with ``room_key``, a second entry the base writes, a margin in metres (e.g.
+            :meth:`~mixed_traffic.controllers.classic.StoppingEnvelope.slack`), and the margin (m, > 0)
+            below which an accelerating residual also fades linearly, ``clamp(slack / fade_slack, 0, 1)``:
+            a fade that starts before the bound is reached, where the room alone falls from full to 0
+            within centimetres (default None: the room alone).
 
     Example:
         >>> from mixed_traffic import make_env
@@ -71,7 +76,8 @@ class ResidualAction(Transform):
                  low: float | None = None, high: float | None = None,
                  policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), fade_speeds: tuple[float, float] | None = None,
-                 speed_key: NestedKey = ("cav", "speed"), room_key: NestedKey | None = None):
+                 speed_key: NestedKey = ("cav", "speed"), room_key: NestedKey | None = None,
+                 slack_key: NestedKey | None = None, fade_slack: float | None = None):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if not engage_seconds >= 0:
@@ -84,6 +90,10 @@ class ResidualAction(Transform):
         if policy_bounds is not None and not (len(policy_bounds) == 2 and policy_bounds[0] < policy_bounds[1]):
             raise ValueError(f"ResidualAction: policy_bounds={policy_bounds!r} is invalid; allowed: (low, high) "
                              "with low < high, or None")
+        if (slack_key is None) != (fade_slack is None) or (slack_key is not None and room_key is None):
+            raise ValueError("ResidualAction: slack_key and fade_slack go together, and with a room_key")
+        if fade_slack is not None and not fade_slack > 0:
+            raise ValueError(f"ResidualAction: fade_slack={fade_slack!r} is invalid; allowed: > 0 (m)")
         super().__init__(in_keys=[], out_keys=[base_action_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.policy_bounds = None if policy_bounds is None else (float(policy_bounds[0]), float(policy_bounds[1]))
         self.base = base
@@ -91,6 +101,7 @@ class ResidualAction(Transform):
         self.engage_seconds, self.time_key = float(engage_seconds), time_key
         self.fade_speeds = None if fade_speeds is None else (float(fade_speeds[0]), float(fade_speeds[1]))
         self.speed_key, self.room_key = speed_key, room_key
+        self.slack_key, self.fade_slack = slack_key, None if fade_slack is None else float(fade_slack)
         self.action_key = action_key
         if base_out_key is None:
             out_keys = getattr(base, "out_keys", None)
@@ -144,6 +155,9 @@ class ResidualAction(Transform):
         if self.room_key is not None:
             room = base_out.get(self.room_key).to(a_res.dtype).reshape(a_res.shape).clamp_min(0.0)
             fade = (room / self._residual_max(a_res).clamp_min(1e-9)).clamp(max=1.0)
+            if self.slack_key is not None:
+                slack = base_out.get(self.slack_key).to(a_res.dtype).reshape(a_res.shape)
+                fade = torch.minimum(fade, (slack / self.fade_slack).clamp(0.0, 1.0))
             residual = torch.where(residual > 0, torch.minimum(residual * fade, room), residual)  # the min: an
             # action outside the policy's bounds
         executed = torch.minimum(torch.maximum(a_base + residual, low), high)
@@ -170,4 +184,5 @@ class ResidualAction(Transform):
         engage = f", engage_seconds={self.engage_seconds}" if self.engage_seconds else ""
         fade = f", fade_speeds={self.fade_speeds}" if self.fade_speeds else ""
         room = f", room_key={self.room_key}" if self.room_key is not None else ""
+        room += f", fade_slack={self.fade_slack}" if self.fade_slack is not None else ""
         return f"{type(self).__name__}(weight={self.weight}{engage}{fade}{room}, base={type(self.base).__name__})"

@@ -15,6 +15,7 @@ False
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -144,26 +145,45 @@ class StoppingEnvelope(nn.Module):
         upper = self.bound(gap, speed, leader_speed)
         return upper - torch.minimum(self.law(gap, speed, leader_speed), upper)
 
+    def slack(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """The stopping rule's margin in metres: how much gap the car could still give up if it held its
+        speed for this step and then braked, the leader braking from now on (0 on the envelope's edge).
+        Unlike :meth:`room`, whose scale near a stop is ``1 / dt^2`` per metre, it shrinks smoothly."""
+        from transforms.safety_layer import braking_distance
+
+        b_l = self.leader_brake.to(speed)
+        b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), b_l)
+        v = speed.clamp_min(0.0)
+        vl1 = (leader_speed.clamp_min(0.0) - b_l * self.dt).clamp_min(0.0)
+        c = gap - self.stop_gap + vl1 * self.dt + braking_distance(vl1, b_l, self.dt)
+        return torch.minimum(gap - self.stop_gap + (vl1 - v) * self.dt, c - v * self.dt - braking_distance(v, b, self.dt))
+
 
 class _EnvelopeRoom(nn.Module):
-    """The command and its :meth:`StoppingEnvelope.room`, one evaluation of the law."""
+    """The command, its :meth:`StoppingEnvelope.room` and (``slack``) its :meth:`StoppingEnvelope.slack`
+    while the car closes on its leader (inf while the leader is as fast or faster: the margin then grows by
+    itself, and the room alone guards the bound), one evaluation of the law."""
 
-    def __init__(self, envelope: StoppingEnvelope):
+    def __init__(self, envelope: StoppingEnvelope, slack: bool):
         super().__init__()
-        self.envelope = envelope
+        self.envelope, self.with_slack = envelope, slack
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
         upper = self.envelope.bound(gap, speed, leader_speed)
         command = torch.minimum(self.envelope.law(gap, speed, leader_speed), upper)
-        return command, upper - command
+        if not self.with_slack:
+            return command, upper - command
+        slack = self.envelope.slack(gap, speed, leader_speed)
+        return command, upper - command, torch.where(speed > leader_speed, slack, torch.full_like(slack, math.inf))
 
 
-def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float,
-                             room_key: NestedKey | None = None) -> TensorDictModule:
+def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
+                             slack_key: NestedKey | None = None) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
     (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
-    writes the envelope's :meth:`~StoppingEnvelope.room` there.
+    writes the envelope's :meth:`~StoppingEnvelope.room` there, and with ``slack_key`` (with ``room_key``)
+    its :meth:`~StoppingEnvelope.slack`.
 
     >>> from mixed_traffic import make_env
     >>> env = make_env("ring", batch_size=2, seed=0)
@@ -178,9 +198,12 @@ def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float,
     envelope = StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
                                 leader_brake=scenario_leader_brake(scenario), low=low)
     if room_key is None:
+        if slack_key is not None:
+            raise ValueError("stopping_envelope_policy: slack_key needs a room_key")
         return TensorDictModule(envelope, in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
-    return TensorDictModule(_EnvelopeRoom(envelope), in_keys=list(policy.in_keys),
-                            out_keys=[*policy.out_keys, room_key])
+    extra = [room_key] if slack_key is None else [room_key, slack_key]
+    return TensorDictModule(_EnvelopeRoom(envelope, slack=slack_key is not None), in_keys=list(policy.in_keys),
+                            out_keys=[*policy.out_keys, *extra])
 
 
 def action_bounds(env) -> tuple[float, float]:

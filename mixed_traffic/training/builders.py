@@ -125,22 +125,26 @@ def _residual_idm(tcfg, env):
     r = tcfg.residual
     try:
         room_key = ENVELOPE_ROOM_KEY if r.get("envelope_fade", False) else None
-        base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key)
+        fade_slack = r.get("envelope_fade_slack") if room_key is not None else None
+        slack_key = ENVELOPE_SLACK_KEY if fade_slack is not None else None
+        base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key)
         fade = r.get("fade_speeds")
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
-                              fade_speeds=None if fade is None else tuple(fade), room_key=room_key)
+                              fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
+                              slack_key=slack_key, fade_slack=fade_slack)
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
 
-ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope
+ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope (m/s^2)
+ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
 
-def residual_base(rcfg, env, *, saturate: bool = True, room_key=None):
+def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
     inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
-    when given). ``saturate=False``: its command is not clipped to the env's action bounds
+    and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum)."""
     from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
 
@@ -156,7 +160,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None):
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
     if rcfg.get("stop_gap") is not None:
-        base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key)
+        base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key)
     return base
 
 
