@@ -160,11 +160,14 @@ class ResidualConfig:
     every future gap at or above ``stop_gap`` if the leader brakes as hard as it can from the next step on
     (``mixed_traffic.controllers.classic.StoppingEnvelope``, the safety layer's stopping rule as a term of
     the base); null: no envelope.
-    ``envelope_fade`` (needs ``stop_gap``): a residual that accelerates fades out as the base nears its
-    envelope (``ResidualAction(room_key=...)``), so base + residual never exceeds it; a braking residual is
-    left as it is. ``envelope_fade_slack`` (m, > 0, or null): while the car closes on its leader it also
-    fades linearly as the envelope's margin in metres (``StoppingEnvelope.slack``) falls from this value to
-    0, so the fade begins before the bound is reached; null: the room below the envelope alone.
+    ``envelope_fade`` (``off``, ``always`` or ``deploy``; not ``off`` needs ``stop_gap``): a residual that
+    accelerates fades out as the base nears its envelope (``ResidualAction(room_key=...)``), so base +
+    residual never exceeds it; a braking residual is left as it is. ``always``: in training too;
+    ``deploy``: only where the policy is evaluated or deployed (the evaluation harness, ``mt-eval``), so
+    training still pays the safety layer's price for leaning on that bound instead of being faded silently.
+    ``envelope_fade_slack`` (m, > 0, or null): while the car closes on its leader it also fades linearly as
+    the envelope's margin in metres (``StoppingEnvelope.slack``) falls from this value to 0, so the fade
+    begins before the bound is reached; null: the room below the envelope alone.
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -178,7 +181,7 @@ class ResidualConfig:
     top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
-    envelope_fade: bool = False  # the residual's push fades out where the base nears its envelope
+    envelope_fade: str = "off"  # "off", "always", "deploy": the residual's push fades out near the envelope
     envelope_fade_slack: float | None = None  # m, > 0: ... from this margin of the envelope on; null: at the bound
     saturate_base: bool = True
 

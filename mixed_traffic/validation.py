@@ -132,7 +132,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
-    "transforms.residual.envelope_fade": OneOf((True, False)),
+    "transforms.residual.envelope_fade": OneOf(("off", "always", "deploy")),
     "transforms.residual.envelope_fade_slack": Real(0, lo_open=True, optional=True),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
@@ -263,14 +263,14 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                                  and 0 <= fade[0] < fade[1]):
         raise ConfigError("transforms.residual.fade_speeds", repr(fade),
                           "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
-    if (OmegaConf.select(cfg, "transforms.residual.envelope_fade", default=False)
-            and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None):
-        raise ConfigError("transforms.residual.envelope_fade", "true with stop_gap null",
-                          "false, or true with a stop_gap (the envelope it fades against)")
+    fade_mode = OmegaConf.select(cfg, "transforms.residual.envelope_fade", default="off")
+    if fade_mode != "off" and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None:
+        raise ConfigError("transforms.residual.envelope_fade", f"{fade_mode} with stop_gap null",
+                          "off, or always / deploy with a stop_gap (the envelope it fades against)")
     if (OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is not None
-            and not OmegaConf.select(cfg, "transforms.residual.envelope_fade", default=False)):
-        raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade false",
-                          "null, or a margin (m, > 0) with envelope_fade true")
+            and fade_mode == "off"):
+        raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
+                          "null, or a margin (m, > 0) with envelope_fade always / deploy")
     for key in ("high_speed", "top_speed"):
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

@@ -308,9 +308,9 @@ def test_band_experiment_adds_a_third_law_and_the_fade_and_nothing_else():
 
 def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
     """``experiment=ring_lagrangian_ppo_band_stop`` is ``ring_lagrangian_ppo_band`` with ``stop_gap`` 5 m (the
-    safety layer's s_min) and ``envelope_fade`` (with a 3-m ``envelope_fade_slack``) and nothing else; the
-    envelope wraps the built base, whose room and margin the residual reads; a gap of 0, a fade without a gap
-    or a margin without a fade fails at start-up naming the field."""
+    safety layer's s_min) and ``envelope_fade: deploy`` and nothing else; the envelope wraps the built base;
+    the residual reads the base's room below it where the policy is evaluated (``deploy=True``) and not in
+    training; a gap of 0, a fade without a gap or a margin without a fade fails at start-up naming the field."""
     from mixed_traffic.controllers.classic import SpeedScheduledCAV, StoppingEnvelope
     from mixed_traffic.training.builders import make_transformed_env
     from mixed_traffic.validation import ConfigError, validate_config
@@ -318,21 +318,27 @@ def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
 
     stop, band = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_band_stop", "ring_lagrangian_ppo_band"))
     assert stop.transforms.residual.stop_gap == stop.transforms.safety_layer.s_min == 5.0
-    assert band.transforms.residual.stop_gap is None and stop.transforms.residual.envelope_fade
+    assert band.transforms.residual.stop_gap is None and stop.transforms.residual.envelope_fade == "deploy"
     with open_dict(stop):
         stop.transforms.residual.stop_gap, stop.name = None, band.name
-        stop.transforms.residual.envelope_fade, stop.transforms.residual.envelope_fade_slack = False, None
+        stop.transforms.residual.envelope_fade = "off"
     assert OmegaConf.to_container(stop) == OmegaConf.to_container(band)
     cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop"]))
-    res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    train = [t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction)]
+    assert train[0].room_key is None and isinstance(train[0].base.module, StoppingEnvelope)
+    res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=True).transform
+           if isinstance(t, ResidualAction)]
     env_ = res[0].base.module.envelope
     assert isinstance(env_, StoppingEnvelope) and isinstance(env_.law, SpeedScheduledCAV) and env_.stop_gap == 5.0
-    assert (res[0].room_key, res[0].slack_key) == tuple(res[0].base.out_keys[1:]) and res[0].fade_slack == 3.0
+    assert res[0].room_key == res[0].base.out_keys[1] and res[0].slack_key is None
     with pytest.raises(ConfigError, match=r"transforms\.residual\.stop_gap"):
         validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.stop_gap=0"]))
     with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade"):
-        validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.envelope_fade=true"]))
+        validate_config(compose(["experiment=ring_lagrangian_ppo_band", "transforms.residual.envelope_fade=always"]))
+    with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.envelope_fade=true"]))
     with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade_slack"):
-        validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.envelope_fade=false"]))
+        validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.envelope_fade=off",
+                                 "transforms.residual.envelope_fade_slack=3"]))
     with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade_slack"):
         validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.envelope_fade_slack=0"]))

@@ -533,15 +533,16 @@ def test_stopping_envelope_leaves_everyday_driving_alone():
     assert torch.equal(accel["null"], accel["5.0"])
 
 
-def _full_throttle_residual_behind_a_stop(fade: bool):
-    """``ring_lagrangian_ppo_band_stop`` without a layer, driven by a residual that always asks for its
-    largest acceleration (an adversarial policy), behind the head of :func:`_brake_from_25` braking from
-    18 m/s (inside the residual's speeds) to a standstill; 30 s."""
+def _full_throttle_residual_behind_a_stop(fade: str, deploy: bool = True):
+    """``ring_lagrangian_ppo_band_stop`` (``envelope_fade``: ``fade``) without a layer, as deployed (or, with
+    ``deploy`` False, as trained), driven by a residual that always asks for its largest acceleration (an
+    adversarial policy), behind the head of :func:`_brake_from_25` braking from 18 m/s (inside the residual's
+    speeds) to a standstill; 30 s."""
     from mixed_traffic.training.builders import make_transformed_env
 
     cfg = compose(["experiment=ring_lagrangian_ppo_band_stop", f"transforms.residual.envelope_fade={fade}",
                    "transforms.chain=[non_negative_reward,residual_idm]", "transforms.residual.engage_seconds=0"])
-    env = make_transformed_env(cfg, num_envs=2, seed=0, profile="emergency_brake",
+    env = make_transformed_env(cfg, num_envs=2, seed=0, deploy=deploy, profile="emergency_brake",
                                profile_kwargs={"start": 5.0, "v_cruise": 18.0, "v_low": 0.0},
                                v_init=18.0, init_spacing=22.0)
     high = env.action_spec.space.high
@@ -553,19 +554,22 @@ def _full_throttle_residual_behind_a_stop(fade: bool):
 
 
 def test_envelope_fade_keeps_base_plus_residual_inside_the_stopping_envelope_whatever_the_residual():
-    """``transforms.residual.envelope_fade``: the policy itself (base plus learned residual, no layer) keeps
-    every gap at or above ``stop_gap`` when the head brakes to a stop, even with a residual that always
-    pushes its hardest; without the fade that residual takes the gap under it. Away from the envelope the
+    """``transforms.residual.envelope_fade`` (``deploy``, the default's; ``always``): the policy itself (base
+    plus learned residual, no layer) keeps every gap at or above ``stop_gap`` when the head brakes to a stop,
+    even with a residual that always pushes its hardest; without the fade (``off``, or ``deploy`` in the
+    training env) that residual takes the gap under it. Away from the envelope the
     residual acts in full (a first command is the base's plus the residual's largest value, 1.5 m/s^2), and
     it is only ever faded, never turned into braking."""
-    faded = _full_throttle_residual_behind_a_stop(True)
+    faded = _full_throttle_residual_behind_a_stop("deploy")
     assert not bool(faded["next", "collision"].any())
     assert float(faded["next", "cav", "gap"].min()) >= 5.0 - 1e-3
     base = faded["next", "residual", "base_action"]
     added = faded["next", "cav", "accel"] - base
     assert float(added[:, 0].max()) == pytest.approx(1.5, abs=1e-4) and float(added.min()) >= -1e-4
-    bare = _full_throttle_residual_behind_a_stop(False)
-    assert float(bare["next", "cav", "gap"].min()) < 4.0
+    always = _full_throttle_residual_behind_a_stop("always", deploy=False)
+    assert torch.equal(always["next", "cav", "accel"], faded["next", "cav", "accel"])
+    for bare in (_full_throttle_residual_behind_a_stop("off"), _full_throttle_residual_behind_a_stop("deploy", False)):
+        assert float(bare["next", "cav", "gap"].min()) < 4.0
 
 
 def test_envelope_slack_is_nonnegative_exactly_where_holding_speed_stays_inside_the_layers_rule():

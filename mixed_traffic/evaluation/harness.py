@@ -224,7 +224,8 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
     ov = eval_env_overrides(cfg, profile)
     if init_spacing_rows is not None:
         ov["init_spacing_rows"] = tuple(float(x) for x in init_spacing_rows)
-    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, **ov)
+    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, deploy=True,
+                               **ov)
     seed_episodes(env, episode_seeds(seed, episodes))
     if policy_factory is not None:
         policy = policy_factory(env)
@@ -274,7 +275,7 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
     V = 1 + (len(close) + 1 if layer_free else 0)
     ov = eval_env_overrides(cfg, profiles[0])
     ov["init_spacing_rows"] = tuple(starts[i % P][max(0, (i // P) % V - 1)] for i in range(P * V))  # row i % (P*V)
-    env = make_transformed_env(cfg, num_envs=P * V * episodes, seed=seed, without=TRAINING_ONLY, **ov)
+    env = make_transformed_env(cfg, num_envs=P * V * episodes, seed=seed, without=TRAINING_ONLY, deploy=True, **ov)
     base = env.base_env
     base.set_profile(RowProfiles(tuple(sc.make_profile() for sc in scenarios)))
     rows = torch.arange(P * V * episodes)

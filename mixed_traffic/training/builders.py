@@ -119,12 +119,13 @@ def _jerk_limit(tcfg, env):
     return JerkLimit(max_jerk=tcfg.jerk_limit.max_jerk)
 
 
-def _residual_idm(tcfg, env):
+def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
 
     r = tcfg.residual
     try:
-        room_key = ENVELOPE_ROOM_KEY if r.get("envelope_fade", False) else None
+        mode = r.get("envelope_fade", "off")
+        room_key = ENVELOPE_ROOM_KEY if mode == "always" or (mode == "deploy" and deploy) else None
         fade_slack = r.get("envelope_fade_slack") if room_key is not None else None
         slack_key = ENVELOPE_SLACK_KEY if fade_slack is not None else None
         base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key)
@@ -234,6 +235,7 @@ TRANSFORMS: dict[str, Callable] = {
 }
 #: transforms that shape training only; the evaluation runs the env without them
 TRAINING_ONLY = ("conflict_cost", "jerk_penalty")
+DEPLOY_AWARE = ("residual_idm",)  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
 
 
 def check_chain(chain) -> None:
@@ -243,11 +245,13 @@ def check_chain(chain) -> None:
 
 
 def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, without: tuple[str, ...] = (),
-                         **env_overrides) -> TransformedEnv:
+                         deploy: bool = False, **env_overrides) -> TransformedEnv:
     """The base env of ``cfg.env`` wrapped in ``cfg.transforms.chain`` (+ episode bookkeeping).
 
     ``without`` drops named transforms from the chain (the evaluation removes
-    ``safety_layer`` and ``intervention_cost`` to run the policy's raw actions).
+    ``safety_layer`` and ``intervention_cost`` to run the policy's raw actions). ``deploy``: the chain as
+    the policy is evaluated or deployed (the transforms in :data:`DEPLOY_AWARE` build their deployment
+    form, e.g. ``transforms.residual.envelope_fade: deploy``); False: as it trains.
 
     ``RewardSum`` (``episode_reward``: the task reward summed over the episode, before any
     Lagrangian penalty) and ``StepCounter`` come last so logs see the transformed reward.
@@ -255,7 +259,8 @@ def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, without: 
     check_chain(cfg.transforms.chain)
     base: EnvBase = make_env(cfg.env.scenario, backend=cfg.env.backend, batch_size=num_envs, seed=seed,
                              device=cfg.device, **env_kwargs(cfg.env, **env_overrides))
-    ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain if name not in without]
+    ts = [TRANSFORMS[name](cfg.transforms, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
+          for name in cfg.transforms.chain if name not in without]
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return TransformedEnv(base, Compose(*ts))
 
