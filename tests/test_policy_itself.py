@@ -574,8 +574,9 @@ def test_envelope_fade_keeps_base_plus_residual_inside_the_stopping_envelope_wha
 
 def test_envelope_slack_is_nonnegative_exactly_where_holding_speed_stays_inside_the_layers_rule():
     """``StoppingEnvelope.slack`` (m) is >= 0 exactly where the safety layer's own stopping rule
-    (``safe_accel_upper``) allows holding the speed for a step (its bound >= 0), on random states."""
-    from mixed_traffic.controllers.classic import StoppingEnvelope
+    (``safe_accel_upper``) allows holding the speed for a step (its bound >= 0), on random states; the base
+    with a slack key reports it only while closing on the leader (inf otherwise), beside command and room."""
+    from mixed_traffic.controllers.classic import StoppingEnvelope, _EnvelopeRoom
     from transforms.safety_layer import safe_accel_upper
 
     g = torch.Generator().manual_seed(0)
@@ -588,3 +589,6 @@ def test_envelope_slack_is_nonnegative_exactly_where_holding_speed_stays_inside_
     clear = (slack.abs() > 1e-3) & (upper.abs() > 1e-3)
     assert bool(clear.float().mean() > 0.95) and bool(((slack > 0) == (upper > 0))[clear].all())
     assert bool((slack > 0).any()) and bool((slack < 0).any())
+    command, room, closing = _EnvelopeRoom(env_, slack=True)(gap, v, vl)
+    assert torch.equal(command, env_(gap, v, vl)) and torch.equal(room, env_.room(gap, v, vl))
+    assert torch.equal(closing[v > vl], slack[v > vl]) and bool(torch.isinf(closing[v <= vl]).all())

@@ -140,10 +140,15 @@ class StoppingEnvelope(nn.Module):
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         return torch.minimum(self.law(gap, speed, leader_speed), self.bound(gap, speed, leader_speed))
 
+    def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
+        """The command and :meth:`room`, from one evaluation of the law."""
+        upper = self.bound(gap, speed, leader_speed)
+        command = torch.minimum(self.law(gap, speed, leader_speed), upper)
+        return command, upper - command
+
     def room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """``a_stop`` minus the command (m/s^2, >= 0; 0 where the envelope binds)."""
-        upper = self.bound(gap, speed, leader_speed)
-        return upper - torch.minimum(self.law(gap, speed, leader_speed), upper)
+        return self.command_and_room(gap, speed, leader_speed)[1]
 
     def slack(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """The stopping rule's margin in metres: how much gap the car could still give up if it held its
@@ -169,12 +174,11 @@ class _EnvelopeRoom(nn.Module):
         self.envelope, self.with_slack = envelope, slack
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
-        upper = self.envelope.bound(gap, speed, leader_speed)
-        command = torch.minimum(self.envelope.law(gap, speed, leader_speed), upper)
+        command, room = self.envelope.command_and_room(gap, speed, leader_speed)
         if not self.with_slack:
-            return command, upper - command
+            return command, room
         slack = self.envelope.slack(gap, speed, leader_speed)
-        return command, upper - command, torch.where(speed > leader_speed, slack, torch.full_like(slack, math.inf))
+        return command, room, torch.where(speed > leader_speed, slack, torch.full_like(slack, math.inf))
 
 
 def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
