@@ -124,6 +124,18 @@ def _max_speed_within_distance(c: Tensor, b: Tensor, dt: float) -> Tensor:
     return best
 
 
+def stopping_budget(gap: Tensor, v_leader: Tensor, *, s_min: float, dt: float,
+                    leader_brake: Tensor | float) -> tuple[Tensor, Tensor]:
+    """The right-hand sides of the ``"stopping"`` rule: ``vl1``, the leader's speed after one step braking
+    at ``leader_brake``, and ``c = gap - s_min + vl1 dt + D(vl1, leader_brake)``, the distance the car may
+    cover from the next step on, ``u dt + D(u, b) <= c`` for its post-step speed ``u``, with the next gap
+    itself ``gap + (vl1 - u) dt >= s_min``. Shared by :func:`safe_accel_upper`, the stopping envelope's
+    margin (``StoppingEnvelope.slack``) and the jerk oracle's stopping constraint."""
+    b_l = torch.as_tensor(leader_brake, dtype=v_leader.dtype, device=v_leader.device)
+    vl1 = (v_leader.clamp_min(0.0) - b_l * dt).clamp_min(0.0)  # leader brakes as hard as it can
+    return vl1, gap - s_min + vl1 * dt + braking_distance(vl1, b_l, dt)
+
+
 def safe_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: float, dt: float,
                      brake: Tensor | float, leader_brake: Tensor | float) -> Tensor:
     """Largest acceleration that keeps the post-step state in the safe set (``"stopping"`` mode).
@@ -135,9 +147,8 @@ def safe_accel_upper(gap: Tensor, v: Tensor, v_leader: Tensor, *, s_min: float, 
     b_l = torch.as_tensor(leader_brake, dtype=dtype, device=v.device)
     b = torch.minimum(b_e, b_l)
     v = v.clamp_min(0.0)
-    vl1 = (v_leader.clamp_min(0.0) - b_l * dt).clamp_min(0.0)  # leader brakes as hard as it can
-    # (ii) after the step both brake: u dt + D(u, b) <= s - s_min + vl1 dt + D(vl1, b_l)
-    c = gap - s_min + vl1 * dt + braking_distance(vl1, b_l, dt)
+    # (ii) after the step both brake: u dt + D(u, b) <= c = s - s_min + vl1 dt + D(vl1, b_l)
+    vl1, c = stopping_budget(gap, v_leader, s_min=s_min, dt=dt, leader_brake=b_l)
     u2 = torch.where(c >= 0, _max_speed_within_distance(c, b, dt), c / dt)
     # (i) the next gap itself: s + (vl1 - u) dt >= s_min
     u1 = vl1 + (gap - s_min) / dt

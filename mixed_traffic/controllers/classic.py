@@ -138,7 +138,7 @@ class StoppingEnvelope(nn.Module):
         return upper.clamp_min(self.low)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        return torch.minimum(self.law(gap, speed, leader_speed), self.bound(gap, speed, leader_speed))
+        return self.command_and_room(gap, speed, leader_speed)[0]
 
     def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
         """The command and :meth:`room`, from one evaluation of the law."""
@@ -154,13 +154,12 @@ class StoppingEnvelope(nn.Module):
         """The stopping rule's margin in metres: how much gap the car could still give up if it held its
         speed for this step and then braked, the leader braking from now on (0 on the envelope's edge).
         Unlike :meth:`room`, whose scale near a stop is ``1 / dt^2`` per metre, it shrinks smoothly."""
-        from transforms.safety_layer import braking_distance
+        from transforms.safety_layer import braking_distance, stopping_budget
 
         b_l = self.leader_brake.to(speed)
         b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), b_l)
         v = speed.clamp_min(0.0)
-        vl1 = (leader_speed.clamp_min(0.0) - b_l * self.dt).clamp_min(0.0)
-        c = gap - self.stop_gap + vl1 * self.dt + braking_distance(vl1, b_l, self.dt)
+        vl1, c = stopping_budget(gap, leader_speed, s_min=self.stop_gap, dt=self.dt, leader_brake=b_l)
         return torch.minimum(gap - self.stop_gap + (vl1 - v) * self.dt, c - v * self.dt - braking_distance(v, b, self.dt))
 
 

@@ -159,12 +159,13 @@ def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, 
     (``h = b dt``; ``transforms.safety_layer._max_speed_within_distance``)."""
     from scipy import sparse as sp
 
-    from transforms.safety_layer import braking_distance
+    from transforms.safety_layer import stopping_budget
 
     N = vh.shape[0]
     h = brake * dt
-    vl1 = np.maximum(vh[:-1] - leader_brake * dt, 0.0)
-    c0 = vl1 * dt + braking_distance(torch.as_tensor(vl1), leader_brake, dt).numpy() - stop_gap
+    head = torch.as_tensor(vh[:-1])
+    vl1, c0 = (x.numpy() for x in stopping_budget(torch.zeros_like(head), head, s_min=stop_gap, dt=dt,
+                                                   leader_brake=leader_brake))  # c0: the budget at gap 0
     rows, cols, vals, b = [], [], [], []
     k = 0
     for t in range(1, N):
