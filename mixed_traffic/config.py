@@ -143,6 +143,19 @@ class SpeedLawConfig:
 
 
 @dataclass
+class CatchUpConfig:
+    """``transforms.residual.catch_up``: the base lifted toward ``accel`` (m/s^2) while its leader pulls away
+    from a large gap (``mixed_traffic.controllers.classic.CatchUp``): not at all up to ``gaps[0]`` (m) or while
+    the leader is not faster, fully from ``gaps[1]`` with the leader ``dv`` (m/s) or more faster. ``accel``
+    null (the default): off.
+    """
+
+    accel: float | None = None  # m/s^2; null: off
+    gaps: Any = field(default_factory=lambda: [15.0, 25.0])  # [from, full] (m)
+    dv: float = 4.0  # m/s
+
+
+@dataclass
 class ResidualConfig:
     """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual).
 
@@ -180,6 +193,7 @@ class ResidualConfig:
     high_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
+    catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     envelope_fade: str = "off"  # "off", "always", "deploy": the residual's push fades out near the envelope
     envelope_fade_slack: float | None = None  # m, > 0: ... from this margin of the envelope on; null: at the bound

@@ -134,6 +134,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
     "transforms.residual.envelope_fade": OneOf(("off", "always", "deploy")),
     "transforms.residual.envelope_fade_slack": Real(0, lo_open=True, optional=True),
+    "transforms.residual.catch_up.accel": Real(0, lo_open=True, optional=True),
+    "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -271,6 +273,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and fade_mode == "off"):
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
+    gaps = OmegaConf.select(cfg, "transforms.residual.catch_up.gaps", default=None)
+    if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
+                                 and 0 <= gaps[0] < gaps[1]):
+        raise ConfigError("transforms.residual.catch_up.gaps", repr(gaps),
+                          "[from, full] with 0 <= from < full (m)")
     for key in ("high_speed", "top_speed"):
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

@@ -268,6 +268,8 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("eval.intervention_bar=2", "eval.intervention_bar"),
     ("transforms.residual.params.s9=6.0", "transforms.residual.params.s9"),
     ("transforms.residual.params.s0=abc", "transforms.residual.params.s0"),
+    ("transforms.residual.catch_up.gaps=[30,20]", "transforms.residual.catch_up.gaps"),
+    ("transforms.residual.catch_up.dv=0", "transforms.residual.catch_up.dv"),
 ])
 def test_new_config_fields_are_validated(override, field):
     from mixed_traffic.validation import validate_config
@@ -592,3 +594,48 @@ def test_envelope_slack_is_nonnegative_exactly_where_holding_speed_stays_inside_
     command, room, closing = _EnvelopeRoom(env_, slack=True)(gap, v, vl)
     assert torch.equal(command, env_(gap, v, vl)) and torch.equal(room, env_.room(gap, v, vl))
     assert torch.equal(closing[v > vl], slack[v > vl]) and bool(torch.isinf(closing[v <= vl]).all())
+
+
+def test_catch_up_lifts_the_law_only_behind_a_leader_pulling_away_from_a_large_gap():
+    """``CatchUp``: the law's command where the gap is at most ``gaps[0]`` or the leader is not faster; lifted
+    all the way to ``accel`` from ``gaps[1]`` with the leader ``dv`` faster; halfway at half of both; never
+    below the law (a law already above ``accel`` keeps its command). Bad settings name the field."""
+    from mixed_traffic.controllers.classic import CatchUp
+
+    law = lambda gap, v, vl: torch.full_like(v, 1.0)  # noqa: E731
+    cu = CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=4.0)
+    gap = torch.tensor([15.0, 35.0, 35.0, 25.0, 35.0])
+    v = torch.tensor([10.0, 10.0, 10.0, 10.0, 10.0])
+    vl = torch.tensor([16.0, 10.0, 8.0, 12.0, 20.0])
+    assert cu(gap, v, vl).tolist() == pytest.approx([1.0, 1.0, 1.0, 1.0 + 0.25 * 2.0, 3.0])
+    high = CatchUp(lambda gap, v, vl: torch.full_like(v, 3.5), accel=3.0, gaps=(20.0, 30.0), dv=4.0)
+    assert high(gap, v, vl).tolist() == pytest.approx([3.5] * 5)
+    with pytest.raises(ValueError, match=r"catch_up\.gaps"):
+        CatchUp(law, accel=3.0, gaps=(30.0, 20.0), dv=4.0)
+    with pytest.raises(ValueError, match=r"catch_up\.dv"):
+        CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=0.0)
+
+
+def _drive_off(catch_up: list[str]):
+    """The band_stop base behind the head of :func:`_brake_from_25`, which after its 10-s stop drives off
+    again at its 2 m/s^2 back to 25 m/s; 50 s, no layer. Returns the gaps after the first 10 s."""
+    from mixed_traffic.evaluation.policies import residual_base_factory
+    from mixed_traffic.training.builders import make_transformed_env
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.chain=[non_negative_reward,residual_idm]",
+                   *catch_up])
+    env = make_transformed_env(cfg, num_envs=2, seed=0, without=("residual_idm",), profile="emergency_brake",
+                               profile_kwargs={"start": 5.0, "v_cruise": 25.0, "v_low": 0.0},
+                               v_init=25.0, init_spacing=22.0)
+    return env.rollout(500, residual_base_factory(cfg)(env), break_when_any_done=False)["next", "cav", "gap"][:, 100:]
+
+
+def test_catch_up_keeps_the_gap_under_the_bands_edge_as_the_head_drives_off_from_a_standstill():
+    """What ``transforms.residual.catch_up`` is for: the default's base falls more than 40 m behind a head
+    that drives off from a standstill at 2 m/s^2 (its free-road acceleration stays under the head's); lifted
+    toward 3 m/s^2 from 15 m with the leader 4 m/s faster, it stays inside the band, still stopping at 5 m."""
+    assert float(_drive_off([]).max()) > 45.0
+    lifted = _drive_off(["transforms.residual.catch_up.accel=3.0", "transforms.residual.catch_up.gaps=[15,25]",
+                         "transforms.residual.catch_up.dv=4"])
+    assert float(lifted.max()) < 40.0
+    assert float(lifted.min()) >= 5.0 - 1e-3

@@ -147,7 +147,12 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum)."""
-    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
+    from mixed_traffic.controllers.classic import (
+        catch_up_policy,
+        make_classic_policy,
+        speed_scheduled_policy,
+        stopping_envelope_policy,
+    )
 
     bounds = {} if saturate else {"low": -math.inf, "high": math.inf}
 
@@ -160,6 +165,9 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
         node = rcfg.get(key)
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
+    catch = rcfg.get("catch_up")
+    if catch is not None and catch.get("accel") is not None:
+        base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv)
     if rcfg.get("stop_gap") is not None:
         base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key)
     return base
