@@ -31,7 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 NAMES = ("stop_and_go", "brake_to_standstill", "fast_steps", "random_steps", "emergency_brake", "eudc", "sine",
-         "brake_from_25", "wide_steps", "sine_fast")
+         "brake_from_25", "wide_steps", "sine_fast", "stop_and_go_15")
 
 
 def main(argv=None) -> dict:
