@@ -173,6 +173,8 @@ class ResidualConfig:
     every future gap at or above ``stop_gap`` if the leader brakes as hard as it can from the next step on
     (``mixed_traffic.controllers.classic.StoppingEnvelope``, the safety layer's stopping rule as a term of
     the base); null: no envelope.
+    ``catch_up`` (:class:`CatchUpConfig`): the base (inside the envelope) lifted toward an acceleration while
+    its leader pulls away from a large gap; off by default.
     ``envelope_fade`` (``off``, ``always`` or ``deploy``; not ``off`` needs ``stop_gap``): a residual that
     accelerates fades out as the base nears its envelope (``ResidualAction(room_key=...)``), so base +
     residual never exceeds it; a braking residual is left as it is. ``always``: in training too;

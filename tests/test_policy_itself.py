@@ -489,20 +489,20 @@ def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_tha
     assert b["steady_rmse"] <= 0.2
 
 
-def _brake_from_25(stop_gap, layer: bool):
-    """The band base (``stop_gap``: inside its stopping envelope) behind a head that cruises at 25 m/s and
-    brakes at its bound (3 m/s^2, the CAV's own) to a standstill at 5 s, from a 22 m gap; 30 s."""
+def _brake_from_25(stop_gap, layer: bool, *, steps: int = 300, overrides=()):
+    """The band base (``stop_gap``: inside its stopping envelope; ``overrides``: more Hydra overrides) behind
+    a head that cruises at 25 m/s, brakes at its bound (3 m/s^2, the CAV's own) to a standstill at 5 s, holds
+    10 s and drives off again at its 2 m/s^2 back to 25 m/s, from a 22 m gap; ``steps`` of 0.1 s."""
     from mixed_traffic.evaluation.policies import residual_base_factory
     from mixed_traffic.training.builders import make_transformed_env
 
     chain = "[safety_layer,residual_idm]" if layer else "[non_negative_reward,residual_idm]"
     cfg = compose(["experiment=ring_lagrangian_ppo_band", f"transforms.residual.stop_gap={stop_gap}",
-                   f"transforms.chain={chain}"])
+                   f"transforms.chain={chain}", *overrides])
     env = make_transformed_env(cfg, num_envs=2, seed=0, without=("residual_idm",), profile="emergency_brake",
                                profile_kwargs={"start": 5.0, "v_cruise": 25.0, "v_low": 0.0},
                                v_init=25.0, init_spacing=22.0)
-    td = env.rollout(300, residual_base_factory(cfg)(env), break_when_any_done=False)
-    return td
+    return env.rollout(steps, residual_base_factory(cfg)(env), break_when_any_done=False)
 
 
 def test_stopping_envelope_keeps_the_band_base_off_a_head_braking_from_25_ms_to_a_standstill():
@@ -617,17 +617,9 @@ def test_catch_up_lifts_the_law_only_behind_a_leader_pulling_away_from_a_large_g
 
 
 def _drive_off(catch_up: list[str]):
-    """The band_stop base behind the head of :func:`_brake_from_25`, which after its 10-s stop drives off
-    again at its 2 m/s^2 back to 25 m/s; 50 s, no layer. Returns the gaps after the first 10 s."""
-    from mixed_traffic.evaluation.policies import residual_base_factory
-    from mixed_traffic.training.builders import make_transformed_env
-
-    cfg = compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.chain=[non_negative_reward,residual_idm]",
-                   *catch_up])
-    env = make_transformed_env(cfg, num_envs=2, seed=0, without=("residual_idm",), profile="emergency_brake",
-                               profile_kwargs={"start": 5.0, "v_cruise": 25.0, "v_low": 0.0},
-                               v_init=25.0, init_spacing=22.0)
-    return env.rollout(500, residual_base_factory(cfg)(env), break_when_any_done=False)["next", "cav", "gap"][:, 100:]
+    """The default's base (stop_gap 5 m) behind the head of :func:`_brake_from_25` through its stop and its
+    drive-off; 50 s, no layer. Returns the gaps after the first 10 s."""
+    return _brake_from_25(5.0, layer=False, steps=500, overrides=catch_up)["next", "cav", "gap"][:, 100:]
 
 
 def test_catch_up_keeps_the_gap_under_the_bands_edge_as_the_head_drives_off_from_a_standstill():

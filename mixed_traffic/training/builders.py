@@ -144,7 +144,7 @@ ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's ma
 def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
-    inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
+    lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum)."""
     from mixed_traffic.controllers.classic import (
