@@ -270,6 +270,7 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("transforms.residual.params.s0=abc", "transforms.residual.params.s0"),
     ("transforms.residual.catch_up.gaps=[30,20]", "transforms.residual.catch_up.gaps"),
     ("transforms.residual.catch_up.dv=0", "transforms.residual.catch_up.dv"),
+    ("transforms.residual.catch_up.horizon=-1", "transforms.residual.catch_up.horizon"),
 ])
 def test_new_config_fields_are_validated(override, field):
     from mixed_traffic.validation import validate_config
@@ -614,6 +615,23 @@ def test_catch_up_lifts_the_law_only_behind_a_leader_pulling_away_from_a_large_g
         CatchUp(law, accel=3.0, gaps=(30.0, 20.0), dv=4.0)
     with pytest.raises(ValueError, match=r"catch_up\.dv"):
         CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=0.0)
+    with pytest.raises(ValueError, match=r"catch_up\.horizon"):
+        CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=4.0, horizon=-1.0)
+
+
+def test_catch_up_horizon_gates_on_the_gap_projected_ahead_at_the_speed_difference():
+    """``horizon``: the gate reads ``gap + horizon (v_leader - v)^+``. A 22-m gap with the leader 4 m/s faster
+    reads as 30 m two seconds ahead (fully lifted), as 22 m with no horizon (lifted a fifth of the way); a
+    closing leader projects nothing (the gap itself, and the speed gate is shut anyway)."""
+    from mixed_traffic.controllers.classic import CatchUp
+
+    law = lambda gap, v, vl: torch.zeros_like(v)  # noqa: E731
+    gap, v = torch.tensor([22.0, 22.0, 35.0]), torch.tensor([10.0, 10.0, 10.0])
+    vl = torch.tensor([14.0, 12.0, 8.0])
+    ahead = CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=4.0, horizon=2.0)
+    now = CatchUp(law, accel=3.0, gaps=(20.0, 30.0), dv=4.0)
+    assert ahead(gap, v, vl).tolist() == pytest.approx([3.0, 3.0 * 0.6 * 0.5, 0.0])
+    assert now(gap, v, vl).tolist() == pytest.approx([3.0 * 0.2, 3.0 * 0.2 * 0.5, 0.0])
 
 
 def _drive_off(catch_up: list[str]):

@@ -115,26 +115,33 @@ class CatchUp(nn.Module):
     head's 2 m/s^2 outruns a follower whose free-road acceleration stays under that (the ring's bases: an
     IDM envelope's ``a`` of 1.83-2.17 m/s^2), and the gap it loses over 10 s of lag leaves the band's upper
     edge. Raising ``a`` itself answers that too, but every start and everyday step then gets the harder
-    acceleration. TorchRL has no car-following law.
+    acceleration. ``horizon`` (s, >= 0) gates on the gap projected that far ahead at the present speed
+    difference, ``gap + horizon (v_leader - v)^+``, instead of the gap itself, so the lift begins while the
+    gap is still inside the band and a leader that drives off quickly is caught before the gap has grown.
+    TorchRL has no car-following law.
     """
 
-    def __init__(self, law: nn.Module, *, accel: float, gaps: tuple[float, float], dv: float):
+    def __init__(self, law: nn.Module, *, accel: float, gaps: tuple[float, float], dv: float, horizon: float = 0.0):
         super().__init__()
         g0, g1 = (float(g) for g in gaps)
         if not 0.0 <= g0 < g1:
             raise ValueError(f"catch_up.gaps = {list(gaps)} is invalid; allowed: 0 <= gaps[0] < gaps[1] (m)")
         if not dv > 0.0:
             raise ValueError(f"catch_up.dv = {dv} is invalid; allowed: > 0 (m/s)")
-        self.law, self.accel, self.gaps, self.dv = law, float(accel), (g0, g1), float(dv)
+        if not horizon >= 0.0:
+            raise ValueError(f"catch_up.horizon = {horizon} is invalid; allowed: >= 0 (s)")
+        self.law, self.accel, self.gaps, self.dv, self.horizon = law, float(accel), (g0, g1), float(dv), float(horizon)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         a = self.law(gap, speed, leader_speed)
         g0, g1 = self.gaps
-        w = ((gap - g0) / (g1 - g0)).clamp(0.0, 1.0) * ((leader_speed - speed) / self.dv).clamp(0.0, 1.0)
+        closing = leader_speed - speed
+        ahead = gap + self.horizon * closing.clamp_min(0.0)
+        w = ((ahead - g0) / (g1 - g0)).clamp(0.0, 1.0) * (closing / self.dv).clamp(0.0, 1.0)
         return a + w * (self.accel - a).clamp_min(0.0)
 
 
-def catch_up_policy(policy: TensorDictModule, *, accel: float, gaps, dv: float) -> TensorDictModule:
+def catch_up_policy(policy: TensorDictModule, *, accel: float, gaps, dv: float, horizon: float = 0.0) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) with :class:`CatchUp`.
 
     >>> from mixed_traffic import make_env
@@ -143,7 +150,7 @@ def catch_up_policy(policy: TensorDictModule, *, accel: float, gaps, dv: float) 
     >>> bool(env.rollout(50, pol)["next", "collision"].any())
     False
     """
-    return TensorDictModule(CatchUp(policy.module, accel=accel, gaps=tuple(gaps), dv=dv),
+    return TensorDictModule(CatchUp(policy.module, accel=accel, gaps=tuple(gaps), dv=dv, horizon=horizon),
                             in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
 
 

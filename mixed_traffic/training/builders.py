@@ -167,7 +167,8 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
     catch = rcfg.get("catch_up")
     if catch is not None and catch.get("accel") is not None:
-        base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv)
+        base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv,
+                               horizon=catch.get("horizon", 0.0))
     if rcfg.get("stop_gap") is not None:
         base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key)
     return base

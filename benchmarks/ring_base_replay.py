@@ -1,0 +1,190 @@
+"""Many settings of a ring experiment's residual base, replayed behind recorded head traces in seconds each.
+
+What ``ring_base_probe.py`` measures for one setting in minutes (the base driving alone, no layer, tuning
+seed 3000 by default), this measures for hundreds: the head's speeds of every case are recorded once (with
+the ``--set`` base, the reference), and each setting's base is re-driven behind them
+(:mod:`mixed_traffic.evaluation.replay`; the env's actuator bounds, integration and metrics). Settings are
+the reference plus ``--draws`` random draws of the ``--vary KEY=LO:HI`` ranges (uniform, seed ``--draw-seed``)
+or the product of ``--grid KEY=A,B,...`` lists. Per case it gives the jerk against IDM-as-CAV's and against the
+reference's on the same episodes, the smallest gap after the warm-up, the largest head gap, the steady RMSE
+and the collisions (a gap at or below 0); not the return, which sums the humans' speeds.
+
+Prints the settings on the frontier of (worst jerk excess over the reference across the cases, largest
+head gap across the cases) that collide nowhere, and writes ``OUT/replay.jsonl`` (one line per setting) and
+``OUT/replay.json``. Check a chosen setting in the env with ``ring_base_probe.py`` before training on it::
+
+    python benchmarks/ring_base_replay.py --experiment ring_lagrangian_ppo_band_stop \\
+        --set transforms.residual.catch_up.accel=2.9 'transforms.residual.catch_up.gaps=[33,39]' \\
+        --vary transforms.residual.catch_up.horizon=0:4 transforms.residual.catch_up.dv=0.3:3 \\
+        --draws 50 --out outputs/results/ring_base_replay
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import random
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from ring_base_probe import NAMES  # noqa: E402
+
+
+def _pairs(items: list[str], flag: str, parse) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"{flag}: {item!r} is not KEY=VALUE")
+        try:
+            out[key] = parse(value)
+        except ValueError:
+            raise SystemExit(f"{flag}: {item!r} has a bad value") from None
+    return out
+
+
+def _range(value: str) -> tuple[float, float]:
+    lo, hi = (float(x) for x in value.split(":"))
+    if not lo <= hi:
+        raise ValueError
+    return lo, hi
+
+
+def _split(value: str) -> list[str]:
+    """``A,B,...`` on the commas outside brackets: ``[1,2],[3,4]`` is two values."""
+    out, depth, cur = [], 0, ""
+    for ch in value:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            out.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    return [x for x in out + [cur] if x]
+
+
+def settings(a) -> list[list[str]]:
+    """The overrides of each setting beyond ``--set``: the reference (none) first."""
+    vary = _pairs(a.vary, "--vary", _range)
+    grid = _pairs(a.grid, "--grid", _split)
+    if vary and grid:
+        raise SystemExit("--vary and --grid: give one of them")
+    if vary and a.draws < 1:
+        raise SystemExit(f"--draws = {a.draws} is invalid with --vary; allowed: >= 1")
+    rng = random.Random(a.draw_seed)
+    out: list[list[str]] = [[]]
+    for _ in range(a.draws if vary else 0):
+        out.append([f"{k}={round(rng.uniform(lo, hi), 3)}" for k, (lo, hi) in vary.items()])
+    for combo in itertools.product(*grid.values()) if grid else ():
+        out.append([f"{k}={v}" for k, v in zip(grid, combo)])
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--experiment", required=True, help="a ring experiment with a residual base")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="Hydra overrides of the reference")
+    p.add_argument("--vary", nargs="*", default=[], metavar="KEY=LO:HI", help="ranges drawn uniformly")
+    p.add_argument("--draws", type=int, default=20, help="settings drawn from --vary")
+    p.add_argument("--draw-seed", type=int, default=0)
+    p.add_argument("--grid", nargs="*", default=[], metavar="KEY=A,B,...", help="every combination of the lists")
+    p.add_argument("--cases", nargs="+", default=list(NAMES), help=f"subset of {list(NAMES)}")
+    p.add_argument("--seed", type=int, default=3000, help="evaluation seed (default 3000, a tuning seed)")
+    p.add_argument("--episodes", type=int, default=4)
+    p.add_argument("--out", default="outputs/results/ring_base_replay")
+    a = p.parse_args(argv)
+    unknown = set(a.cases) - set(NAMES)
+    if unknown:
+        raise SystemExit(f"--cases: {sorted(unknown)} are not cases; allowed: {list(NAMES)}")
+    todo = settings(a)
+
+    import torch
+    from omegaconf import open_dict
+    from ring_generalization import named_config
+    from tqdm import tqdm
+
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.evaluation.policies import residual_base_factory
+    from mixed_traffic.evaluation.replay import record_head_traces, replay, replay_settings, stack_traces
+    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.validation import validate_config
+
+    torch.set_num_threads(1)
+
+    def config(extra):
+        return validate_config(compose([f"experiment={a.experiment}", *a.set, *extra]))
+
+    ref_cfg = config([])
+    factory = residual_base_factory(ref_cfg)  # fails here, naming residual_idm, for a chain without a base
+    t0 = time.perf_counter()
+    traces, kw = [], None
+    for name in a.cases:
+        cfg, prof = named_config(ref_cfg, name, episodes=a.episodes, seconds=200.0, seed=a.seed)
+        with open_dict(cfg):
+            cfg.eval.seed = a.seed
+        traces.append(record_head_traces(cfg, policy_factory=factory)[prof])
+        here = replay_settings(cfg, prof)
+        if kw is not None and here != kw:
+            raise SystemExit(f"--cases: {name} runs with {here}, the others with {kw}; replay them apart")
+        kw = here
+    trace, rows = stack_traces(traces)
+    record_s = time.perf_counter() - t0
+    env = make_env("ring", batch_size=1, seed=0)
+
+    def per_case(m):
+        return {name: {"collisions": int(m["collision"][r].sum()), "min_gap": float(m["min_gap_after"][r].min()),
+                       "max_head_gap": float(m["max_head_gap"][r].max()),
+                       "steady_rmse": float(m["speed_rmse_steady"][r].mean()),
+                       "jerk": float(m["mean_abs_jerk"][r].mean())} for name, r in zip(a.cases, rows)}
+
+    idm = per_case(replay(make_classic_policy("idm", env).module.double(), trace, **kw))
+    results = []
+    t1 = time.perf_counter()
+    for extra in tqdm(todo, desc="replay", unit="setting", disable=len(todo) < 2):
+        try:
+            base = residual_base(config(extra).transforms.residual, env).module.double()
+        except ValueError as e:  # a drawn setting the base refuses (e.g. gaps[0] >= gaps[1])
+            if not extra:
+                raise SystemExit(f"--set: {e}") from None
+            results.append({"overrides": extra, "error": str(e)})
+            continue
+        res = per_case(replay(base, trace, **kw))
+        ref = results[0]["cases"] if results else res
+        for name, r in res.items():
+            r["jerk_vs_idm"] = r["jerk"] / idm[name]["jerk"] - 1.0
+            r["jerk_vs_reference"] = r["jerk"] / ref[name]["jerk"] - 1.0
+        results.append({"overrides": extra, "cases": res})
+    per_setting = (time.perf_counter() - t1) / len(todo)
+
+    ok = [r for r in results if "cases" in r and not any(c["collisions"] for c in r["cases"].values())]
+    key = lambda r: (max(c["jerk_vs_reference"] for c in r["cases"].values()),  # noqa: E731
+                     max(c["max_head_gap"] for c in r["cases"].values()))
+    frontier = [r for r in ok if not any(key(q)[0] <= key(r)[0] and key(q)[1] <= key(r)[1] and key(q) != key(r)
+                                         for q in ok)]
+    print(f"{a.experiment} {' '.join(a.set)}: {len(todo)} settings replayed on {a.cases} (seed {a.seed}, "
+          f"{a.episodes} episodes a case); recording {record_s:.1f} s, {per_setting:.2f} s a setting")
+    print("frontier (worst jerk over the reference's, largest head gap), collision-free:")
+    for r in sorted(frontier, key=key):
+        w, g = key(r)
+        print(f"  {100 * w:+6.1f} %  {g:5.1f} m  {' '.join(r['overrides']) or '(reference)'}")
+    out = {"experiment": a.experiment, "set": a.set, "seed": a.seed, "episodes": a.episodes, "cases": a.cases,
+           "idm_as_cav": idm, "settings": results, "record_seconds": record_s, "seconds_per_setting": per_setting}
+    d = Path(a.out)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "replay.json").write_text(json.dumps(out, indent=1))
+    with open(d / "replay.jsonl", "w") as f:
+        for r in results:
+            f.write(json.dumps(r) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    main()
