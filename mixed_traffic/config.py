@@ -148,13 +148,16 @@ class CatchUpConfig:
     from a large gap (``mixed_traffic.controllers.classic.CatchUp``): not at all up to ``gaps[0]`` (m) or while
     the leader is not faster, fully from ``gaps[1]`` with the leader ``dv`` (m/s) or more faster. ``horizon``
     (s, >= 0): the gate reads the gap projected this far ahead, ``gap + horizon (v_leader - v)^+``; 0: the gap
-    itself. ``accel`` null (the default): off.
+    itself. ``when``: ``always`` (training and deployment) or ``deploy`` (only where the policy is evaluated or
+    deployed, as ``envelope_fade: deploy``: the policy trains on the base without it, weights unchanged).
+    ``accel`` null (the default): off.
     """
 
     accel: float | None = None  # m/s^2; null: off
     gaps: Any = field(default_factory=lambda: [15.0, 25.0])  # [from, full] (m)
     dv: float = 4.0  # m/s
     horizon: float = 0.0  # s; the gate reads gap + horizon * (v_leader - v)^+
+    when: str = "always"  # "always" or "deploy" (evaluation and deployment only)
 
 
 @dataclass

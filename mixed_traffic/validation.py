@@ -137,6 +137,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.catch_up.accel": Real(0, lo_open=True, optional=True),
     "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.residual.catch_up.horizon": Real(0),
+    "transforms.residual.catch_up.when": OneOf(("always", "deploy")),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),

@@ -342,3 +342,14 @@ def test_band_stop_experiment_adds_the_stopping_envelope_and_nothing_else():
                                  "transforms.residual.envelope_fade_slack=3"]))
     with pytest.raises(ConfigError, match=r"transforms\.residual\.envelope_fade_slack"):
         validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.envelope_fade_slack=0"]))
+
+
+def test_band_stop_lift_experiment_is_band_stop_with_a_deploy_only_lift_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_band_stop_lift`` differs from the default only in ``catch_up``, lifted at
+    deployment only: the same training config, so the same weights."""
+    lift, stop = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_band_stop_lift",
+                                                        "ring_lagrangian_ppo_band_stop"))
+    assert lift.transforms.residual.catch_up.when == "deploy" and lift.transforms.residual.catch_up.accel > 0
+    with open_dict(lift):
+        lift.transforms.residual.catch_up, lift.name = stop.transforms.residual.catch_up, stop.name
+    assert OmegaConf.to_container(lift) == OmegaConf.to_container(stop)

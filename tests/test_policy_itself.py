@@ -271,6 +271,7 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("transforms.residual.catch_up.gaps=[30,20]", "transforms.residual.catch_up.gaps"),
     ("transforms.residual.catch_up.dv=0", "transforms.residual.catch_up.dv"),
     ("transforms.residual.catch_up.horizon=-1", "transforms.residual.catch_up.horizon"),
+    ("transforms.residual.catch_up.when=train", "transforms.residual.catch_up.when"),
 ])
 def test_new_config_fields_are_validated(override, field):
     from mixed_traffic.validation import validate_config
@@ -649,3 +650,29 @@ def test_catch_up_keeps_the_gap_under_the_bands_edge_as_the_head_drives_off_from
                          "transforms.residual.catch_up.dv=4"])
     assert float(lifted.max()) < 40.0
     assert float(lifted.min()) >= 5.0 - 1e-3
+
+
+def test_catch_up_when_deploy_lifts_the_base_only_where_the_policy_is_evaluated():
+    """``catch_up.when: deploy``: the policy trains on the base without the lift (so its weights are those of a
+    run without it) and is evaluated and deployed with it, as ``envelope_fade: deploy``; ``always``: both.
+    The base driving alone (``residual_base_factory``, the replay benchmark) is the deployed one."""
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.classic import CatchUp
+    from mixed_traffic.training.builders import make_transformed_env, residual_base
+    from mixed_traffic.validation import validate_config
+    from transforms import ResidualAction
+
+    def law(when: str, deploy: bool):
+        cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop", "transforms.residual.catch_up.accel=3.0",
+                                       f"transforms.residual.catch_up.when={when}"]))
+        res = [t for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=deploy).transform
+               if isinstance(t, ResidualAction)][0]
+        module = res.base.module
+        return getattr(module, "envelope", module).law, cfg
+
+    assert not isinstance(law("deploy", False)[0], CatchUp)
+    lifted, cfg = law("deploy", True)
+    assert isinstance(lifted, CatchUp)
+    assert isinstance(law("always", False)[0], CatchUp) and isinstance(law("always", True)[0], CatchUp)
+    alone = residual_base(cfg.transforms.residual, make_env("ring", batch_size=1, seed=0)).module
+    assert isinstance(alone.law, CatchUp)

@@ -128,7 +128,8 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         room_key = ENVELOPE_ROOM_KEY if mode == "always" or (mode == "deploy" and deploy) else None
         fade_slack = r.get("envelope_fade_slack") if room_key is not None else None
         slack_key = ENVELOPE_SLACK_KEY if fade_slack is not None else None
-        base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key)
+        base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key,
+                             deploy=deploy)
         fade = r.get("fade_speeds")
         return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
                               fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
@@ -141,12 +142,13 @@ ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its r
 ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
 
-def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None):
+def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None, deploy: bool = True):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
     lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
-    (``ResidualAction`` clips the sum)."""
+    (``ResidualAction`` clips the sum). ``deploy``: the base as evaluated or deployed; False, as it trains
+    (without a ``catch_up`` whose ``when`` is ``deploy``)."""
     from mixed_traffic.controllers.classic import (
         catch_up_policy,
         make_classic_policy,
@@ -166,7 +168,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
     catch = rcfg.get("catch_up")
-    if catch is not None and catch.get("accel") is not None:
+    if catch is not None and catch.get("accel") is not None and (deploy or catch.get("when", "always") == "always"):
         base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv,
                                horizon=catch.get("horizon", 0.0))
     if rcfg.get("stop_gap") is not None:
