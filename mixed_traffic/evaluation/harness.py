@@ -146,6 +146,34 @@ def steady_samples(head_accel: torch.Tensor, after: torch.Tensor, settle_steps: 
     return after & ((idx - last_break) >= settle_steps)
 
 
+def _masked_mean(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    return (x * m).sum(1) / m.sum(1).clamp_min(1)
+
+
+def follower_metrics(*, gap: torch.Tensor, head_gap: torch.Tensor, speed: torch.Tensor, head_speed: torch.Tensor,
+                     accel: torch.Tensor, head_accel: torch.Tensor, valid: torch.Tensor, after: torch.Tensor,
+                     dt: float, settle: float) -> dict[str, torch.Tensor]:
+    """The first CAV's own per-episode metrics from ``[episodes, T]`` series (``valid``: the steps that count,
+    ``after``: those after the warm-up): ``min_gap``, ``max_head_gap``, ``min_gap_after``, ``speed_rmse``,
+    ``speed_rmse_steady``, ``mean_abs_accel``, ``mean_abs_jerk`` and ``mean_abs_jerk_after``. Shared by
+    :func:`episode_metrics` and :func:`mixed_traffic.evaluation.replay.replay`."""
+    inf = torch.tensor(float("inf"))
+    err2 = (speed - head_speed).pow(2)
+    rmse = _masked_mean(err2, after).sqrt()
+    steady = steady_samples(head_accel, after, settle_steps=int(round(settle / dt)))
+    jerk, jvalid = abs_jerk(accel, valid, dt)
+    return {
+        "min_gap": torch.where(valid, gap, inf).min(1).values,
+        "max_head_gap": torch.where(after, head_gap, -inf).max(1).values,
+        "min_gap_after": torch.where(after, gap, inf).min(1).values,
+        "speed_rmse": rmse,
+        "speed_rmse_steady": torch.where(steady.sum(1) > 0, _masked_mean(err2, steady).sqrt(), rmse),
+        "mean_abs_accel": _masked_mean(accel.abs(), valid),
+        "mean_abs_jerk": _masked_mean(jerk, jvalid),
+        "mean_abs_jerk_after": _masked_mean(jerk, jvalid & after),
+    }
+
+
 def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float, warmup: float,
                     settle: float) -> tuple[dict[str, torch.Tensor], Trace]:
     """Per-episode metrics of a ``[episodes, T]`` rollout (see the module docstring)."""
@@ -160,38 +188,28 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     vh = nxt.get(("cav", "head_speed"))[..., 0]
     a = nxt.get(("cav", "accel"))[..., 0]
     a_head = nxt.get(("traffic", "accel"))[..., 0]
-    inf = torch.tensor(float("inf"))
-
-    def masked_mean(x, m):
-        return (x * m).sum(1) / m.sum(1).clamp_min(1)
+    f = follower_metrics(gap=gap, head_gap=head_gap, speed=v, head_speed=vh, accel=a, head_accel=a_head,
+                         valid=valid, after=after, dt=dt, settle=settle)
 
     out: dict[str, torch.Tensor] = {}
     out["collision"] = (nxt.get("collision").squeeze(-1) & valid).any(1).float()
-    out["min_gap"] = torch.where(valid, gap, inf).min(1).values
-    out["max_head_gap"] = torch.where(after, head_gap, -inf).max(1).values
-    out["min_gap_after"] = torch.where(after, gap, inf).min(1).values
+    for key in ("min_gap", "max_head_gap", "min_gap_after"):
+        out[key] = f[key]
     outside = (gap < s_min) | (head_gap > s_max)
     out["time_outside"] = (outside & after).sum(1).float() * dt
     out["time_outside_total"] = (outside & valid).sum(1).float() * dt
-    err2 = (v - vh).pow(2)
-    out["speed_rmse"] = masked_mean(err2, after).sqrt()
-    steady = steady_samples(a_head, after, settle_steps=int(round(settle / dt)))
-    has_steady = steady.sum(1) > 0
-    out["speed_rmse_steady"] = torch.where(has_steady, masked_mean(err2, steady).sqrt(), out["speed_rmse"])
-    out["mean_abs_accel"] = masked_mean(a.abs(), valid)
-    jerk, jvalid = abs_jerk(a, valid, dt)
-    out["mean_abs_jerk"] = masked_mean(jerk, jvalid)
-    out["mean_abs_jerk_after"] = masked_mean(jerk, jvalid & after)
+    for key in ("speed_rmse", "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after"):
+        out[key] = f[key]
     out["return"] = (nxt.get("reward").squeeze(-1) * valid).sum(1)
-    out["mean_J"] = masked_mean(nxt.get(("traffic", "J")).squeeze(-1), valid)
+    out["mean_J"] = _masked_mean(nxt.get(("traffic", "J")).squeeze(-1), valid)
     clipped = nxt.get(("safety", "clipped"), None)
-    out["safety_clip_rate"] = masked_mean(clipped[..., 0].float(), valid) if clipped is not None else torch.zeros(
+    out["safety_clip_rate"] = _masked_mean(clipped[..., 0].float(), valid) if clipped is not None else torch.zeros(
         valid.shape[0])
     delta = nxt.get(("safety", "delta"), None)
     delta = delta[..., 0] if delta is not None else torch.zeros_like(a)
-    out["mean_abs_delta"] = masked_mean(delta.abs(), valid)
+    out["mean_abs_delta"] = _masked_mean(delta.abs(), valid)
     override = nxt.get(("cav", "override"), None)
-    out["override_rate"] = masked_mean(override[..., 0].float(), valid) if override is not None else torch.zeros(
+    out["override_rate"] = _masked_mean(override[..., 0].float(), valid) if override is not None else torch.zeros(
         valid.shape[0])
     out["length"] = valid.sum(1).float() * dt
     trace = Trace(time=t, head_speed=vh, cav_speed=v, cav_accel=a, head_accel=a_head, gap=gap, head_gap=head_gap,

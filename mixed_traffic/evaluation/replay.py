@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig, open_dict
 
-from mixed_traffic.evaluation.harness import Trace, abs_jerk, steady_samples
+from mixed_traffic.evaluation.harness import Trace, follower_metrics
 from mixed_traffic.physics import integrate
 
 
@@ -95,10 +95,10 @@ def replay_settings(cfg: DictConfig, profile: str) -> dict:
             "warmup": cfg.eval.warmup_seconds, "settle": cfg.eval.settle_seconds}
 
 
-def _advance(v: torch.Tensor, a: torch.Tensor, dt: float, method: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _advance(v: torch.Tensor, a: torch.Tensor, dt: float,
+             method: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(distance, v', executed a)`` of one step of :func:`mixed_traffic.physics.integrate` from position 0."""
-    x, v_new, executed = integrate(torch.zeros_like(v), v, a, dt, method)
-    return x, v_new, executed
+    return integrate(torch.zeros_like(v), v, a, dt, method)
 
 
 def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: float, settle: float,
@@ -119,36 +119,20 @@ def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: flo
     # the state before the first recorded step: undo that step (speeds at a standstill stay put)
     v = torch.where(v0_after > 0, v0_after - a0 * dt, v0_after)
     vh_prev = torch.where(vh[:, 0] > 0, vh[:, 0] - a_head[:, 0] * dt, vh[:, 0])
+    # the head's speed at the start of each step and its distance over it: the recording, whatever the law
+    v_head = torch.cat([vh_prev[:, None], vh[:, :-1]], 1)
+    x_head, _, _ = _advance(v_head, (vh - v_head) / dt, dt, integration)
     x_cav, _, _ = _advance(v, (v0_after - v) / dt, dt, integration)
-    x_head, _, _ = _advance(vh_prev, (vh[:, 0] - vh_prev) / dt, dt, integration)
-    gap = gap0_after - (x_head - x_cav)
-    vl = vh_prev
-    T = vh.shape[1]
+    gap = gap0_after - (x_head[:, 0] - x_cav)
     gaps, accels, speeds = [], [], []
-    for k in range(T):
-        a = law(gap, v, vl).to(f64).clamp(low, high)
+    for k in range(vh.shape[1]):
+        a = law(gap, v, v_head[:, k]).to(f64).clamp(low, high)
         x, v, executed = _advance(v, a, dt, integration)
-        vl_prev, vl = vl, vh[:, k]
-        xh, _, _ = _advance(vl_prev, (vl - vl_prev) / dt, dt, integration)
-        gap = gap + xh - x
+        gap = gap + x_head[:, k] - x
         gaps.append(gap), accels.append(executed), speeds.append(v)
     gap, accel, speed = (torch.stack(s, 1) for s in (gaps, accels, speeds))
-    after = valid & (t >= warmup)
-    inf = torch.tensor(float("inf"), dtype=f64)
-
-    def masked_mean(x, m):
-        return (x * m).sum(1) / m.sum(1).clamp_min(1)
-
-    err2 = (speed - vh).pow(2)
-    steady = steady_samples(a_head, after, settle_steps=int(round(settle / dt)))
-    jerk, jvalid = abs_jerk(accel, valid, dt)
-    rmse = masked_mean(err2, after).sqrt()
-    return {
-        "collision": ((gap <= 0) & valid).any(1).to(f64),
-        "min_gap": torch.where(valid, gap, inf).min(1).values,
-        "min_gap_after": torch.where(after, gap, inf).min(1).values,
-        "max_head_gap": torch.where(after, gap, -inf).max(1).values,
-        "speed_rmse_steady": torch.where(steady.sum(1) > 0, masked_mean(err2, steady).sqrt(), rmse),
-        "mean_abs_jerk": masked_mean(jerk, jvalid),
-        "gap": gap, "accel": accel, "speed": speed,
-    }
+    m = follower_metrics(gap=gap, head_gap=gap, speed=speed, head_speed=vh, accel=accel, head_accel=a_head,
+                         valid=valid, after=valid & (t >= warmup), dt=dt, settle=settle)
+    return {"collision": ((gap <= 0) & valid).any(1).to(f64),
+            **{k: m[k] for k in ("min_gap", "min_gap_after", "max_head_gap", "speed_rmse_steady", "mean_abs_jerk")},
+            "gap": gap, "accel": accel, "speed": speed}
