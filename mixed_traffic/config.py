@@ -133,7 +133,8 @@ class SpeedLawConfig:
     """A classical law that takes over the residual's base by speed
     (``mixed_traffic.controllers.classic.SpeedScheduledCAV``): the laws below it (``transforms.residual.base``,
     then ``high_speed``) drive below ``v_low``, this one above ``v_high`` (m/s), a linear blend between.
-    ``base`` null (the default): off. Used twice, as ``transforms.residual.high_speed`` and ``top_speed``.
+    ``base`` null (the default): off. Used three times, as ``transforms.residual.high_speed``, ``top_speed`` and
+    ``beyond_speed``.
     """
 
     base: str | None = None  # "idm", "ovm" or "soft"; null: off
@@ -170,7 +171,9 @@ class ResidualConfig:
     to ``weight`` at this time (a bumpless engagement: the base drives alone at first); 0: at once.
     ``high_speed`` (:class:`SpeedLawConfig`): a second law that takes the base over by speed;
     ``top_speed`` (the same fields): a third that takes over from the first two (scheduled as one) above
-    its own ``v_low`` / ``v_high``.
+    its own ``v_low`` / ``v_high``; ``beyond_speed`` (the same fields): a fourth that takes over from the
+    first three in the same way, e.g. only above the speeds the policy trains on, so that training never
+    meets it.
     ``fade_speeds`` (``[v_full, v_zero]`` m/s, or null): the residual's weight falls linearly from full at
     the car's own speed ``v_full`` to 0 at ``v_zero``, so that above the speeds the policy trained on the
     base drives (``transforms.ResidualAction``).
@@ -199,6 +202,7 @@ class ResidualConfig:
     engage_seconds: float = 0.0
     high_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     top_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
+    beyond_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base

@@ -129,6 +129,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.high_speed.v_low": Real(0),
     "transforms.residual.top_speed.base": OneOf(("idm", "ovm", "soft", None)),
     "transforms.residual.top_speed.v_low": Real(0),
+    "transforms.residual.beyond_speed.base": OneOf(("idm", "ovm", "soft", None)),
+    "transforms.residual.beyond_speed.v_low": Real(0),
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
@@ -280,7 +282,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                                  and 0 <= gaps[0] < gaps[1]):
         raise ConfigError("transforms.residual.catch_up.gaps", repr(gaps),
                           "[from, full] with 0 <= from < full (m)")
-    for key in ("high_speed", "top_speed"):
+    for key in ("high_speed", "top_speed", "beyond_speed"):
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off
             _check_classic_params(cfg, f"transforms.residual.{key}")

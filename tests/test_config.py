@@ -353,3 +353,26 @@ def test_band_stop_lift_experiment_is_band_stop_with_a_deploy_only_lift_and_noth
     with open_dict(lift):
         lift.transforms.residual.catch_up, lift.name = stop.transforms.residual.catch_up, stop.name
     assert OmegaConf.to_container(lift) == OmegaConf.to_container(stop)
+
+
+def test_wide_band_experiment_is_the_lift_experiment_with_a_law_beyond_the_training_range_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_wide_band`` adds only ``beyond_speed``, a band law with a wider band that
+    takes over from 20 m/s, the top of the training range: below it the base, and so training, are unchanged."""
+    from mixed_traffic.validation import ConfigError, validate_config
+
+    wide, lift = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_wide_band",
+                                                        "ring_lagrangian_ppo_band_stop_lift"))
+    validate_config(wide)  # raises on a bad field
+    for bad, field in (("transforms.residual.beyond_speed.v_high=19.0", "transforms.residual.beyond_speed.v_high"),
+                       ("transforms.residual.beyond_speed.base=gipps", "transforms.residual.beyond_speed.base"),
+                       ("transforms.residual.beyond_speed.params.kvv=0.3", "transforms.residual.beyond_speed.params")):
+        with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+            validate_config(compose(["experiment=ring_lagrangian_ppo_wide_band", bad]))
+    beyond, top = wide.transforms.residual.beyond_speed, wide.transforms.residual.top_speed
+    assert beyond.base == "soft" and beyond.v_low >= top.v_high == 20.0  # the training profile's top speed
+    assert beyond.params.match_gap_min < top.params.match_gap_min
+    assert top.params.match_gap_max < beyond.params.match_gap_max <= 40.0  # the band's edge
+    assert lift.transforms.residual.beyond_speed.base is None
+    with open_dict(wide):
+        wide.transforms.residual.beyond_speed, wide.name = lift.transforms.residual.beyond_speed, lift.name
+    assert OmegaConf.to_container(wide) == OmegaConf.to_container(lift)

@@ -676,3 +676,31 @@ def test_catch_up_when_deploy_lifts_the_base_only_where_the_policy_is_evaluated(
     assert isinstance(law("always", False)[0], CatchUp) and isinstance(law("always", True)[0], CatchUp)
     alone = residual_base(cfg.transforms.residual, make_env("ring", batch_size=1, seed=0)).module
     assert isinstance(alone.law, CatchUp)
+
+
+def test_beyond_speed_law_drives_only_above_its_speeds():
+    """``transforms.residual.beyond_speed`` takes the base over above its ``v_high`` and leaves it as it was
+    below its ``v_low``: the default's band law with the wider band acts above 21 m/s, and below 20 m/s, where
+    the policy trains, the base commands exactly what the base without it commands."""
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.validation import validate_config
+
+    env = make_env("ring", batch_size=1, seed=0)
+    wide_cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_wide_band"]))
+    wide = residual_base(wide_cfg.transforms.residual, env, deploy=False).module
+    lift = residual_base(validate_config(compose(["experiment=ring_lagrangian_ppo_band_stop_lift"])).transforms.residual,
+                         env, deploy=False).module
+    beyond = wide_cfg.transforms.residual.beyond_speed
+    law = make_classic_policy(beyond.base, env, **beyond.params).module
+    gap = torch.linspace(8.0, 38.0, 31).repeat(3)
+    dv = torch.linspace(-3.0, 3.0, 3).repeat_interleave(31)
+    for v, same_as in ((torch.full_like(gap, 12.0), "lift"), (torch.full_like(gap, 19.9), "lift"),
+                       (torch.full_like(gap, 24.0), "beyond")):
+        a = wide(gap, v, v + dv)
+        if same_as == "lift":
+            torch.testing.assert_close(a, lift(gap, v, v + dv), rtol=0, atol=0)
+        else:  # inside the stopping envelope, which binds only where the gap is short for the closing speed
+            torch.testing.assert_close(a, torch.minimum(law(gap, v, v + dv), wide.bound(gap, v, v + dv)))
+    assert not torch.equal(wide(gap, torch.full_like(gap, 24.0), 24.0 + dv),
+                           lift(gap, torch.full_like(gap, 24.0), 24.0 + dv))

@@ -138,13 +138,14 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         raise ValueError(f"transforms.residual: {e}") from None
 
 
+SPEED_LAWS = ("high_speed", "top_speed", "beyond_speed")  # transforms.residual's laws by speed, in order
 ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope (m/s^2)
 ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
 
 def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None, deploy: bool = True):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
-    parameter: the model's own), joined by speed to ``high_speed`` and then ``top_speed`` when they are set,
+    parameter: the model's own), joined by speed to ``high_speed``, ``top_speed`` and then ``beyond_speed`` when they are set,
     lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum). ``deploy``: the base as evaluated or deployed; False, as it trains
@@ -163,7 +164,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
         return make_classic_policy(node.base, env, **bounds, **params)
 
     base = law(rcfg)
-    for key in ("high_speed", "top_speed"):
+    for key in SPEED_LAWS:
         node = rcfg.get(key)
         if node is not None and node.get("base") is not None:
             base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
