@@ -143,6 +143,9 @@ class SpeedLawConfig:
     v_high: float = 16.0
 
 
+SPEED_LAWS = ("high_speed", "top_speed", "beyond_speed")  # ResidualConfig's SpeedLawConfig fields, in order
+
+
 @dataclass
 class CatchUpConfig:
     """``transforms.residual.catch_up``: the base lifted toward ``accel`` (m/s^2) while its leader pulls away
@@ -172,8 +175,8 @@ class ResidualConfig:
     ``high_speed`` (:class:`SpeedLawConfig`): a second law that takes the base over by speed;
     ``top_speed`` (the same fields): a third that takes over from the first two (scheduled as one) above
     its own ``v_low`` / ``v_high``; ``beyond_speed`` (the same fields): a fourth that takes over from the
-    first three in the same way, e.g. only above the speeds the policy trains on, so that training never
-    meets it.
+    first three in the same way, e.g. above the speeds the policy trains on, where ``fade_speeds`` has faded
+    the residual out and this law alone drives.
     ``fade_speeds`` (``[v_full, v_zero]`` m/s, or null): the residual's weight falls linearly from full at
     the car's own speed ``v_full`` to 0 at ``v_zero``, so that above the speeds the policy trained on the
     base drives (``transforms.ResidualAction``).

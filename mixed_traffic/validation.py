@@ -30,6 +30,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from mixed_traffic.config import SPEED_LAWS
+
 DEBUG_ENV = "MT_DEBUG"
 
 
@@ -282,7 +284,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                                  and 0 <= gaps[0] < gaps[1]):
         raise ConfigError("transforms.residual.catch_up.gaps", repr(gaps),
                           "[from, full] with 0 <= from < full (m)")
-    for key in ("high_speed", "top_speed", "beyond_speed"):
+    for key in SPEED_LAWS:
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off
             _check_classic_params(cfg, f"transforms.residual.{key}")

@@ -17,6 +17,7 @@ from torchrl.data import Composite, OneHot, Unbounded
 from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
 from torchrl.modules import MLP, ProbabilisticActor, QValueActor, TanhNormal
 
+from mixed_traffic.config import SPEED_LAWS
 from mixed_traffic.envs import make_env
 
 ENV_FIELDS = ("observation", "profile", "profile_kwargs", "episode_seconds", "weight_v", "weight_s", "weight_u",
@@ -138,7 +139,6 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         raise ValueError(f"transforms.residual: {e}") from None
 
 
-SPEED_LAWS = ("high_speed", "top_speed", "beyond_speed")  # transforms.residual's laws by speed, in order
 ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope (m/s^2)
 ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
