@@ -30,6 +30,8 @@ chosen settings then run in the env. TorchRL has no trace replay of a car-follow
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from omegaconf import DictConfig, open_dict
 
@@ -69,7 +71,6 @@ def stack_traces(traces: list[Trace]) -> tuple[Trace, list[slice]]:
     """One :class:`Trace` of all rows of ``traces`` (shorter ones padded at the end with invalid steps) and
     each input's rows in it, so that traces of several profiles replay in one pass."""
     T = max(tr.valid.shape[1] for tr in traces)
-    fields = ("time", "head_speed", "cav_speed", "cav_accel", "head_accel", "gap", "head_gap", "valid", "raw_accel")
 
     def pad(x: torch.Tensor, name: str) -> torch.Tensor:
         n = T - x.shape[1]
@@ -79,7 +80,8 @@ def stack_traces(traces: list[Trace]) -> tuple[Trace, list[slice]]:
             return torch.cat([x, torch.zeros(x.shape[0], n, dtype=x.dtype)], 1)
         return torch.cat([x, x[:, -1:].expand(-1, n)], 1)  # held: a padded step changes nothing it counts
 
-    out = Trace(**{f: torch.cat([pad(getattr(tr, f), f) for tr in traces], 0) for f in fields})
+    names = [f.name for f in dataclasses.fields(Trace)]
+    out = Trace(**{f: torch.cat([pad(getattr(tr, f), f) for tr in traces], 0) for f in names})
     ends = torch.tensor([tr.valid.shape[0] for tr in traces]).cumsum(0).tolist()
     return out, [slice(e - tr.valid.shape[0], e) for e, tr in zip(ends, traces)]
 
