@@ -20,6 +20,16 @@ inside the [5, 40] m band):
 - ``ring_200``: ``random_steps`` on a 200 m ring;
 - ``humans_50pct``: ``random_steps`` with the humans' parameters spread +-50 %.
 
+Six more (``--cases fresh``), added after the default's base had been searched on the twelve above, so
+that no setting of any law was ever picked on them; all but the last drive above the training range:
+
+- ``eudc_highway``: the EUDC cycle's shape (50-120 km/h) mapped into 14-28 m/s, 330-s episodes;
+- ``fast_ramps``: the training profile, ``random_ramps``, at 20-28 m/s;
+- ``perturbation_24``: ``random_perturbation`` around 24 m/s, +-3 m/s knots every 5 s;
+- ``sine_wide``: ``sine`` at 20 +- 7 m/s, period 60 s, through the training range's top;
+- ``brake_from_28``: ``emergency_brake`` from 28 m/s down to 0 m/s;
+- ``stop_and_go_20``: as ``stop_and_go`` between 20 m/s and standstill.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -72,7 +82,30 @@ def cases(seconds: float) -> dict[str, dict]:
         "sine_fast": {"profile": "sine", "kwargs": {"v_star": 24.0, "amplitude": 4.0, "period": 40.0}},
         "ring_200": {"profile": "random_steps", "kwargs": steps, "env": {"ring_length": 200.0}},
         "humans_50pct": {"profile": "random_steps", "kwargs": steps, "eval": {"hdv_param_noise": 0.5}},
+        "eudc_highway": {"profile": "eudc", "kwargs": {"v_low": 50 / 3.6, "v_high": 28.0},
+                         "eval": {"episode_seconds": 330.0}},
+        "fast_ramps": {"profile": "random_ramps", "kwargs": {"v_low": 20.0, "v_high": 28.0, "v_init": 20.0}},
+        "perturbation_24": {"profile": "random_perturbation", "kwargs": {"v_star": 24.0, "amplitude": 3.0,
+                                                                         "period": 5.0}},
+        "sine_wide": {"profile": "sine", "kwargs": {"v_star": 20.0, "amplitude": 7.0, "period": 60.0}},
+        "brake_from_28": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 28.0, "v_low": 0.0}},
+        "stop_and_go_20": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=20.0)},
     }
+
+
+# --cases accepts these names for their cases; without --cases the held-out twelve run
+GROUPS = {"held_out": ("stop_and_go", "brake_to_standstill", "fast_steps", "ring_250", "ring_400", "humans_30pct",
+                       "brake_from_25", "stop_and_go_15", "wide_steps", "sine_fast", "ring_200", "humans_50pct"),
+          "fresh": ("eudc_highway", "fast_ramps", "perturbation_24", "sine_wide", "brake_from_28", "stop_and_go_20")}
+
+
+def case_names(requested: list[str], all_cases: dict) -> list[str]:
+    """The cases of ``--cases`` in order, each group (:data:`GROUPS`) replaced by its cases, once each; an
+    unknown name exits naming it and the allowed ones."""
+    unknown = sorted(set(requested) - set(all_cases) - set(GROUPS))
+    if unknown:
+        raise SystemExit(f"--cases: {unknown} are not cases; allowed: {list(all_cases)} or a group: {list(GROUPS)}")
+    return list(dict.fromkeys(n for c in requested for n in GROUPS.get(c, (c,))))
 
 
 def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int):
@@ -131,7 +164,8 @@ def main(argv=None) -> dict:
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--seconds", type=float, default=200.0)
     p.add_argument("--seed", type=int, default=2000, help="evaluation seed (default 2000, not a training seed)")
-    p.add_argument("--cases", nargs="+", default=None, help="subset of the cases")
+    p.add_argument("--cases", nargs="+", default=["held_out"],
+                   help=f"cases or groups of them ({', '.join(GROUPS)}; default held_out)")
     p.add_argument("--baselines", nargs="+", default=["idm"],
                    help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6'; "
                         "base: the run's residual base alone)")
@@ -145,9 +179,7 @@ def main(argv=None) -> dict:
                    help="time window of --plot (default: the whole episode)")
     a = p.parse_args(argv)
     all_cases = cases(a.seconds)
-    unknown = sorted(set(a.cases or ()) - set(all_cases))
-    if unknown:
-        raise SystemExit(f"--cases: {unknown} are not cases; allowed: {list(all_cases)}")
+    names = case_names(a.cases, all_cases)
 
     import torch
     from omegaconf import open_dict
@@ -163,7 +195,6 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
     factory = policy_factory_from_state(run_cfg, state)
-    names = a.cases or list(all_cases)
     results = {}
     for name in names:
         case = all_cases[name]

@@ -704,3 +704,27 @@ def test_beyond_speed_law_drives_only_above_its_speeds():
             torch.testing.assert_close(a, torch.minimum(law(gap, v, v + dv), wide.bound(gap, v, v + dv)))
     assert not torch.equal(wide(gap, torch.full_like(gap, 24.0), 24.0 + dv),
                            lift(gap, torch.full_like(gap, 24.0), 24.0 + dv))
+
+
+def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_expand(benchmark_script):
+    """``--cases fresh`` of benchmarks/ring_generalization.py runs the six cases added after the base was
+    searched: each head profile (as the evaluation samples it, 4 episodes) stays at or above 0 m/s and
+    reaches above the training profile's 20 m/s (stop_and_go_20 reaches it), within the CAV's reach (28 m/s);
+    groups expand in order and once, and an unknown name exits naming the allowed groups."""
+    mod = benchmark_script("ring_generalization")
+    all_cases = mod.cases(200.0)
+    assert mod.case_names(["fresh"], all_cases) == list(mod.GROUPS["fresh"])
+    assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
+    assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
+    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh'\]"):
+        mod.case_names(["sine_fastest"], all_cases)
+    assert set(mod.GROUPS["fresh"]).isdisjoint(mod.GROUPS["held_out"])
+    assert set(all_cases) == set(mod.GROUPS["fresh"]) | set(mod.GROUPS["held_out"])
+    for name in mod.GROUPS["fresh"]:
+        case = all_cases[name]
+        seconds = case.get("eval", {}).get("episode_seconds", 200.0)
+        prof = make_profile(case["profile"], **case["kwargs"])
+        params = prof.sample(4, torch.Generator().manual_seed(5000))
+        v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, seconds, 0.1).tolist()])
+        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
+        assert float(v.max()) > (19.99 if name == "stop_and_go_20" else 20.5), name
