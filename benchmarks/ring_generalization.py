@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -177,9 +178,14 @@ def main(argv=None) -> dict:
                         "policy with and without its layer and of each baseline without one")
     p.add_argument("--plot-seconds", type=float, nargs=2, default=None, metavar=("T0", "T1"),
                    help="time window of --plot (default: the whole episode)")
+    p.add_argument("--jerk-by-speed", type=float, nargs="+", default=None, metavar="V",
+                   help="also split each controller's mean |jerk| by the CAV's speed at these edges (m/s; e.g. 16 "
+                        "20: below 16, 16-20, 20 and above), the shares adding up to the whole (results' jerk_by_speed)")
     a = p.parse_args(argv)
     all_cases = cases(a.seconds)
     names = case_names(a.cases, all_cases)
+    if a.jerk_by_speed is not None and (any(v <= 0 for v in a.jerk_by_speed) or sorted(set(a.jerk_by_speed)) != a.jerk_by_speed):
+        raise SystemExit(f"--jerk-by-speed: {a.jerk_by_speed} is invalid; allowed: increasing speeds > 0 (m/s)")
 
     import torch
     from omegaconf import open_dict
@@ -215,6 +221,12 @@ def main(argv=None) -> dict:
                 with open_dict(base_cfg):
                     base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
                 results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
+        if a.jerk_by_speed is not None:
+            from mixed_traffic.evaluation.harness import eval_scenario, jerk_shares_by
+
+            dt, edges = eval_scenario(cfg, prof).dt, [0.0, *a.jerk_by_speed, math.inf]
+            results[name]["jerk_by_speed"] = {"edges": edges, **{
+                label: jerk_shares_by(t.cav_accel, t.valid, dt, t.cav_speed, edges) for label, t in plotted.items()}}
         print(name, json.dumps(results[name]["policy"]), flush=True)
         if a.plot:
             Path(a.out).mkdir(parents=True, exist_ok=True)
@@ -245,6 +257,15 @@ def main(argv=None) -> dict:
                 lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, {label} | {i_['collisions']} | "
                              f"{i_['min_gap']:.2f} | – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | "
                              f"{i_['jerk']:.4f} | {i_['return']:.0f} | {iv} |")
+    by_speed = {name: r["jerk_by_speed"] for name, r in results.items() if "jerk_by_speed" in r}
+    if by_speed:
+        edges = next(iter(by_speed.values()))["edges"]
+        bins = [f"{lo:g}-{hi:g} m/s" if hi != math.inf else f"{lo:g}+ m/s" for lo, hi in zip(edges[:-1], edges[1:])]
+        lines += ["", "Mean |jerk| (m/s3) by the CAV's speed (the shares add up to the whole episode's):", "",
+                  "| case | controller | " + " | ".join(bins) + " |", "|" + "---|" * (2 + len(bins))]
+        for name, r in by_speed.items():
+            lines += [f"| {name} | {label} | " + " | ".join(f"{x:.4f}" for x in v) + " |"
+                      for label, v in r.items() if label != "edges"]
     md = "\n".join(lines) + "\n"
     (out / "generalization.md").write_text(md)
     print(md)

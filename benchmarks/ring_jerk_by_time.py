@@ -29,15 +29,12 @@ def jerk_shares(trace, dt: float, edges=EDGES, from_seconds: float = 5.0) -> dic
     """Per window ``[lo, hi)``: its steps' summed ``|jerk|`` over all valid steps (so the windows add
     up to the whole-episode mean), averaged over episodes; and the mean ``|jerk|`` from ``from_seconds`` on.
     The jerk and its steps are the report's (:func:`~mixed_traffic.evaluation.harness.abs_jerk`)."""
-    from mixed_traffic.evaluation.harness import abs_jerk
+    from mixed_traffic.evaluation.harness import abs_jerk, jerk_shares_by
 
     jerk, valid = abs_jerk(trace.cav_accel, trace.valid, dt)
     t = trace.time
     n = valid.sum(1).clamp_min(1)
-    shares = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        m = valid & (t >= lo) & (t < hi)
-        shares.append(float(((jerk * m).sum(1) / n).mean()))
+    shares = jerk_shares_by(trace.cav_accel, trace.valid, dt, t, edges)
     late = valid & (t >= from_seconds)
     after = (jerk * late).sum(1) / late.sum(1).clamp_min(1)
     return {"edges": list(edges), "shares": shares, "whole": float(((jerk * valid).sum(1) / n).mean()),

@@ -720,6 +720,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         mod.case_names(["sine_fastest"], all_cases)
     assert set(mod.GROUPS["fresh"]).isdisjoint(mod.GROUPS["held_out"])
     assert set(all_cases) == set(mod.GROUPS["fresh"]) | set(mod.GROUPS["held_out"])
+    with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
+        mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     for name in mod.GROUPS["fresh"]:
         case = all_cases[name]
         seconds = case.get("eval", {}).get("episode_seconds", 200.0)
@@ -728,3 +730,23 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, seconds, 0.1).tolist()])
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert float(v.max()) > (19.99 if name == "stop_and_go_20" else 20.5), name
+
+
+def test_jerk_shares_by_speed_add_up_to_the_reports_mean_jerk():
+    """``harness.jerk_shares_by`` (``ring_generalization.py --jerk-by-speed``): the report's mean |jerk| split by
+    the CAV's speed; the bins add up to the whole-episode mean, each step's jerk lands in its speed's bin, and
+    the first step (its previous acceleration unknown) and invalid steps count nowhere."""
+    from mixed_traffic.evaluation.harness import abs_jerk, jerk_shares_by
+
+    accel = torch.tensor([[0.0, 1.0, 1.0, -1.0, -1.0, 0.0], [2.0, 0.0, 0.0, 0.0, 1.0, 1.0]])
+    speed = torch.tensor([[10.0, 15.0, 17.0, 19.0, 22.0, 25.0], [30.0, 30.0, 18.0, 18.0, 18.0, 5.0]])
+    valid = torch.ones_like(accel, dtype=torch.bool)
+    valid[1, 5] = False
+    edges = [0.0, 16.0, 20.0, float("inf")]
+    shares = jerk_shares_by(accel, valid, 0.1, speed, edges)
+    jerk, jvalid = abs_jerk(accel, valid, 0.1)
+    whole = float(((jerk * jvalid).sum(1) / jvalid.sum(1)).mean())
+    assert sum(shares) == pytest.approx(whole)
+    # episode 0: jerk 10 at 15 m/s, 20 at 19 m/s, 10 at 25 m/s over 5 steps; episode 1: 20 at 30 m/s, 10 at
+    # 18 m/s over 4 steps (the 5-m/s step is invalid)
+    assert shares == pytest.approx([(10 / 5 + 0) / 2, (20 / 5 + 10 / 4) / 2, (10 / 5 + 20 / 4) / 2])

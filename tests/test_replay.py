@@ -113,3 +113,8 @@ def test_the_replay_benchmark_ranks_a_grid_against_its_reference(tmp_path):
     assert json.loads((tmp_path / "replay.json").read_text())["cases"] == ["sine_fast"]
     with pytest.raises(SystemExit, match="--vary"):
         main(["--experiment", "ring_lagrangian_ppo_band_stop", "--vary", "transforms.residual.weight=2:1"])
+    # the fresh cases are accepted by name (to look into them) but are not searched on by default
+    with pytest.raises(SystemExit, match=r"\['sine_slowest'\] are not cases; allowed: .*'sine_wide'"):
+        main(["--experiment", "ring_lagrangian_ppo_band_stop", "--cases", "sine_slowest"])
+    import ring_base_replay
+    assert "sine_wide" in ring_base_replay.NAMES and "sine_wide" not in ring_base_replay.PROBED

@@ -136,6 +136,15 @@ def abs_jerk(accel: torch.Tensor, valid: torch.Tensor, dt: float) -> tuple[torch
     return jerk, jvalid
 
 
+def jerk_shares_by(accel: torch.Tensor, valid: torch.Tensor, dt: float, by: torch.Tensor, edges) -> list[float]:
+    """The report's mean ``|jerk|`` (:func:`abs_jerk`) split by the bins ``[lo, hi)`` of ``edges`` over ``by``
+    (``[episodes, T]``: the time, the CAV's speed, ...): per bin, its steps' summed ``|jerk|`` over all counted
+    steps, averaged over episodes, so the shares add up to the whole-episode mean when the bins cover ``by``."""
+    jerk, jvalid = abs_jerk(accel, valid, dt)
+    n = jvalid.sum(1).clamp_min(1)
+    return [float(((jerk * (jvalid & (by >= lo) & (by < hi))).sum(1) / n).mean()) for lo, hi in zip(edges[:-1], edges[1:])]
+
+
 def steady_samples(head_accel: torch.Tensor, after: torch.Tensor, settle_steps: int) -> torch.Tensor:
     """``[episodes, T]`` mask of the steady-state samples: ``after`` and the head's acceleration below
     0.05 m/s^2 for the last ``settle_steps`` steps (the samples ``speed_rmse_steady`` counts)."""
