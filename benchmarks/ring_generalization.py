@@ -36,7 +36,8 @@ run's residual base with the learned residual at zero) runs
 without a layer and, with ``--baselines-with-layer``, again behind the run's safety layer, all
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
 ``OUT/generalization.json`` and prints the table; ``--plot`` also draws episode 0 of each case
-(``OUT/<case>.png``).
+(``OUT/<case>.png``); ``--jerk-by-speed 16 20`` also splits each controller's mean |jerk| by the CAV's
+speed (below 16, 16-20 and from 20 m/s), to show where in speed a controller's jerk is.
 
     python benchmarks/ring_generalization.py --checkpoint outputs/results/ring_lagrangian_ppo_seed0 \\
         --episodes 5 --seconds 200 --out outputs/results/ring_lagrangian_ppo_seed0/generalization
@@ -207,7 +208,8 @@ def main(argv=None) -> dict:
         cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
         rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
-        results[name] = {"policy": row(rep, prof), "policy_without_layer": no_layer_rows(rep, prof)}
+        results[name] = {"seconds": float(cfg.eval.episode_seconds), "policy": row(rep, prof),
+                         "policy_without_layer": no_layer_rows(rep, prof)}
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
             base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)

@@ -406,6 +406,7 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
                     "--baselines", "idm", "--baselines-with-layer", "--plot", "--out", str(out)])
     rows = res["fast_steps"]
+    assert rows["seconds"] == 20.0  # each case records its episode length (eudc_highway runs 330 s)
     assert rows["idm"]["intervention_rate"] == 0.0 and rows["idm + layer"]["intervention_rate"] > 0.0
     assert rows["idm + layer"]["max_head_gap"] < rows["idm"]["max_head_gap"]
     assert "idm + layer" in json.loads((out / "generalization.json").read_text())["results"]["fast_steps"]
