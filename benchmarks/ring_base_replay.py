@@ -9,8 +9,9 @@ or the product of ``--grid KEY=A,B,...`` lists. Per case it gives the jerk again
 reference's on the same episodes, the smallest gap after the warm-up, the largest head gap, the steady RMSE
 and the collisions (a gap at or below 0); not the return, which sums the humans' speeds.
 
-``--cases`` defaults to the cases settings are searched on; it also takes the six fresh cases of
-``ring_generalization.py --cases fresh``, to look into a setting there, not to pick one.
+``--cases`` defaults to the cases settings are searched on (those of ``ring_base_probe.py`` and the three of
+``ring_generalization.py --cases tuning``); it also takes the fresh cases of ``ring_generalization.py --cases
+fresh`` and ``fresh_2``, to look into a setting there, not to pick one.
 
 Prints the settings on the frontier of (worst jerk excess over the reference across the cases, largest
 head gap across the cases) that collide nowhere, and writes ``OUT/replay.jsonl`` (one line per setting) and
@@ -39,7 +40,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from ring_base_probe import NAMES as PROBED  # noqa: E402
 from ring_generalization import GROUPS  # noqa: E402
 
-NAMES = PROBED + GROUPS["fresh"]  # the fresh cases too, to look into them (none of their settings was picked on them)
+# the tuning cases that cross the laws' handover speeds (searched on, as PROBED) and the fresh ones, to look into
+# them (no setting was picked on them)
+NAMES = PROBED + GROUPS["tuning"] + GROUPS["fresh"] + GROUPS["fresh_2"]
 
 
 def _pairs(items: list[str], flag: str, parse) -> dict:
@@ -100,8 +103,9 @@ def main(argv=None) -> dict:
     p.add_argument("--draws", type=int, default=20, help="settings drawn from --vary")
     p.add_argument("--draw-seed", type=int, default=0)
     p.add_argument("--grid", nargs="*", default=[], metavar="KEY=A,B,...", help="every combination of the lists")
-    p.add_argument("--cases", nargs="+", default=list(PROBED),
-                   help=f"subset of {list(NAMES)} (default: the first {len(PROBED)}, the ones settings are searched on)")
+    searched = list(PROBED + GROUPS["tuning"])
+    p.add_argument("--cases", nargs="+", default=searched,
+                   help=f"subset of {list(NAMES)} (default: the first {len(searched)}, the ones settings are searched on)")
     p.add_argument("--seed", type=int, default=3000, help="evaluation seed (default 3000, a tuning seed)")
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--out", default="outputs/results/ring_base_replay")

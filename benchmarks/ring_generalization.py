@@ -30,6 +30,19 @@ that no setting of any law was ever picked on them; all but the last drive above
 - ``brake_from_28``: ``emergency_brake`` from 28 m/s down to 0 m/s;
 - ``stop_and_go_20``: as ``stop_and_go`` between 20 m/s and standstill.
 
+The fresh six showed a defect of the base around 18 m/s, where its laws hand over. Three tuning cases that
+cross that speed (``--cases tuning``: ``sine_cross``, 18 +- 5 m/s; ``steps_cross``, ``random_steps`` at
+14-24 m/s; ``ramps_cross``, ``random_ramps`` at 12-24 m/s) were added for the search of a fix
+(``ring_base_replay.py``, tuning seed 3000), and six more (``--cases fresh_2``) were fixed before that search
+began and run only on its result:
+
+- ``sine_slow_wide``: ``sine`` at 17 +- 9 m/s, period 90 s;
+- ``ramps_wide``: ``random_ramps`` at 4-26 m/s;
+- ``steps_16_24``: ``random_steps`` at 16-24 m/s, period 20 s;
+- ``perturbation_18``: ``random_perturbation`` around 18 m/s, +-4 m/s knots every 8 s;
+- ``brake_22_to_8``: ``emergency_brake`` from 22 m/s down to 8 m/s;
+- ``stop_and_go_25``: as ``stop_and_go`` between 25 m/s and standstill.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -92,13 +105,30 @@ def cases(seconds: float) -> dict[str, dict]:
         "sine_wide": {"profile": "sine", "kwargs": {"v_star": 20.0, "amplitude": 7.0, "period": 60.0}},
         "brake_from_28": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 28.0, "v_low": 0.0}},
         "stop_and_go_20": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=20.0)},
+        # tuning cases: settings are searched on these (ring_base_replay.py, seed 3000), never reported as held-out
+        "sine_cross": {"profile": "sine", "kwargs": {"v_star": 18.0, "amplitude": 5.0, "period": 45.0}},
+        "steps_cross": {"profile": "random_steps", "kwargs": {"v_low": 14.0, "v_high": 24.0, "period": 15.0,
+                                                              "v_init": 18.0}},
+        "ramps_cross": {"profile": "random_ramps", "kwargs": {"v_low": 12.0, "v_high": 24.0, "v_init": 18.0}},
+        # fresh_2: fixed before the search on the tuning cases above began and run only on its result
+        "sine_slow_wide": {"profile": "sine", "kwargs": {"v_star": 17.0, "amplitude": 9.0, "period": 90.0}},
+        "ramps_wide": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 26.0, "v_init": 15.0}},
+        "steps_16_24": {"profile": "random_steps", "kwargs": {"v_low": 16.0, "v_high": 24.0, "period": 20.0,
+                                                              "v_init": 20.0}},
+        "perturbation_18": {"profile": "random_perturbation", "kwargs": {"v_star": 18.0, "amplitude": 4.0,
+                                                                         "period": 8.0}},
+        "brake_22_to_8": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 22.0, "v_low": 8.0}},
+        "stop_and_go_25": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=25.0)},
     }
 
 
 # --cases accepts these names for their cases; without --cases the held-out twelve run (every case of cases()
-# but the fresh six)
+# but the others groups')
 FRESH = ("eudc_highway", "fast_ramps", "perturbation_24", "sine_wide", "brake_from_28", "stop_and_go_20")
-GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH), "fresh": FRESH}
+TUNING = ("sine_cross", "steps_cross", "ramps_cross")
+FRESH_2 = ("sine_slow_wide", "ramps_wide", "steps_16_24", "perturbation_18", "brake_22_to_8", "stop_and_go_25")
+GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2), "fresh": FRESH,
+          "fresh_2": FRESH_2, "tuning": TUNING}
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:

@@ -81,6 +81,8 @@ class SoftFollowerParams:
     match_gap_max: float = math.inf  # match a faster leader's speed at constant acceleration before this gap (m)
     match_gap_min: float = -math.inf  # match a slower leader's speed at constant deceleration above this gap (m)
     ks_edge: float = 0.0  # gap gain added beyond match_gap_max and below match_gap_min (1/s^2)
+    match_h_min: float = 0.0  # the band's floor grows by this time headway: match_gap_min + match_h_min v (s)
+    match_h_max: float = 0.0  # ... and its ceiling by this one: match_gap_max + match_h_max v (s)
 
 
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
@@ -95,7 +97,8 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
                         s0_idm: Num, a: Num, b: Num, v0: Num, kv_closing: Num | None = None,
                         v_ref: Num = math.inf, gap_cap: Num = math.inf, brake_opening: Num = 1.0,
                         kv_closing_near: Num = 0.0, match_gap_max: Num = math.inf,
-                        match_gap_min: Num = -math.inf, ks_edge: Num = 0.0, **_) -> Tensor:
+                        match_gap_min: Num = -math.inf, ks_edge: Num = 0.0, match_h_min: Num = 0.0,
+                        match_h_max: Num = 0.0, **_) -> Tensor:
     """``min(g(v) [ks (gap - min(s0 + h v, gap_cap)) + k (v_leader - v)], IDM(gap, v, v_leader))``.
 
     The linear law lets the gap float inside a band (weak gap feedback); the IDM envelope (delta 4) brakes
@@ -118,7 +121,9 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     room floored at 1 m. Followed exactly it is constant through the answer (``dv^2 / room`` does not
     change), so a step of the leader costs one rise and one fall of the command, and a small step a small
     one. ``ks_edge`` (1/s^2) adds a gap gain beyond the two gaps only, which brings a gap back inside
-    them; with ``ks`` 0 the gap floats freely between them.
+    them; with ``ks`` 0 the gap floats freely between them. ``match_h_min`` / ``match_h_max`` (s, default 0)
+    let the two edges grow with the car's speed, ``match_gap_min + match_h_min v`` and ``match_gap_max +
+    match_h_max v``, so that one law keeps a band that suits every speed (a time headway's room grows with it).
     """
     kv = torch.as_tensor(kv, dtype=v.dtype)
     desired = torch.clamp(s0 + h * v, max=gap_cap)
@@ -129,9 +134,10 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     linear = ks * (gap - desired) + k * dv
     linear = linear / (v / v_ref).clamp_min(1.0)  # g(v) = min(1, v_ref / v); v_ref = inf gives 1 (and a finite gradient)
     linear = torch.where((dv > 0) & (linear < 0), linear * brake_opening, linear)
-    room = torch.where(dv > 0, match_gap_max - gap, gap - match_gap_min).clamp_min(1.0)  # inf (no band): no term
+    ceil, floor = match_gap_max + match_h_max * v, match_gap_min + match_h_min * v  # +-inf (no band) stay so
+    room = torch.where(dv > 0, ceil - gap, gap - floor).clamp_min(1.0)  # inf (no band): no term
     linear = linear + dv * dv.abs() / (2.0 * room)
-    beyond = (gap - match_gap_max).clamp_min(0.0) - (match_gap_min - gap).clamp_min(0.0)  # 0 inside (and no band)
+    beyond = (gap - ceil).clamp_min(0.0) - (floor - gap).clamp_min(0.0)  # 0 inside (and no band)
     linear = linear + ks_edge * beyond
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 

@@ -319,6 +319,16 @@ def test_soft_follower_band_terms_against_hand_values_and_a_constant_acceleratio
         gaps.append(float(s))
     assert max(abs(x - 25.0 / 28.0) for x in accs) < 1e-3  # one constant acceleration
     assert 32.5 < gaps[-1] < 33.0 and len(accs) * dt < 4.1  # 72 % of the step matched in 4 s, 1 m short of 34
+    # match_h_min / match_h_max: the edges grow with the car's speed. At 20 m/s, floor 4 + 0.3 * 20 = 10 and
+    # ceiling 22 + 0.6 * 20 = 34, the band above; at 10 m/s the same law's band is [7, 28]
+    grow = {"match_gap_min": 4.0, "match_h_min": 0.3, "match_gap_max": 22.0, "match_h_max": 0.6, "ks_edge": 0.1}
+    assert torch.allclose(soft_follower_accel(gap, v, lead, **(p | grow)), on, atol=1e-6)
+    assert torch.allclose(soft_follower_accel(g2, v, same, **(p | grow)), edge, atol=1e-6)
+    v10, g10 = torch.tensor([10.0, 10.0]), torch.tensor([20.0, 20.0])
+    lead10 = torch.tensor([12.0, 8.0])  # rooms 28 - 20 = 8 and 20 - 7 = 13
+    fixed = soft_follower_accel(g10, v10, lead10, **p)
+    assert torch.allclose(soft_follower_accel(g10, v10, lead10, **(p | grow)) - fixed,
+                          torch.tensor([4.0 / 16.0, -4.0 / 26.0]), atol=1e-6)
 
 
 def test_soft_follower_gradient_is_finite_with_its_defaults():
@@ -348,11 +358,12 @@ def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
 
 @pytest.mark.parametrize("name, value", [("brake_opening", 1.5), ("v_ref", 0.0), ("gap_cap", -1.0),
                                          ("kv_closing_near", -0.5), ("ks_edge", -0.1),
-                                         ("match_gap_max", 8.0)])
+                                         ("match_gap_max", 8.0), ("match_h_min", -0.1), ("match_h_max", 0.1)])
 def test_soft_controller_rejects_out_of_range_parameters(name, value):
     from mixed_traffic.controllers.classic import make_classic_policy
 
-    band = {"match_gap_min": 10.0, "match_gap_max": 34.0}  # match_gap_max 8: below match_gap_min
+    band = {"match_gap_min": 10.0, "match_gap_max": 34.0, "match_h_min": 0.2, "match_h_max": 0.2}
+    # match_gap_max 8: below match_gap_min; match_h_max 0.1: a ceiling growing slower than the floor
     with pytest.raises(ValueError, match=name):
         make_classic_policy("soft", low=-3.0, high=2.0, **(band | {name: value}))
 

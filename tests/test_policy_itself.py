@@ -708,22 +708,24 @@ def test_beyond_speed_law_drives_only_above_its_speeds():
 
 
 def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_expand(benchmark_script):
-    """``--cases fresh`` of benchmarks/ring_generalization.py runs the six cases added after the base was
+    """``--cases fresh`` / ``fresh_2`` of benchmarks/ring_generalization.py run the cases added after a base was
     searched: each head profile (as the evaluation samples it, 4 episodes) stays at or above 0 m/s and
     reaches above the training profile's 20 m/s (stop_and_go_20 reaches it), within the CAV's reach (28 m/s);
-    groups expand in order and once, and an unknown name exits naming the allowed groups."""
+    the tuning cases cross 16-20 m/s; the groups are disjoint and cover every case, expand in order and once,
+    and an unknown name exits naming the allowed groups."""
     mod = benchmark_script("ring_generalization")
     all_cases = mod.cases(200.0)
     assert mod.case_names(["fresh"], all_cases) == list(mod.GROUPS["fresh"])
     assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
-    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh'\]"):
+    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning'\]"):
         mod.case_names(["sine_fastest"], all_cases)
-    assert set(mod.GROUPS["fresh"]).isdisjoint(mod.GROUPS["held_out"])
-    assert set(all_cases) == set(mod.GROUPS["fresh"]) | set(mod.GROUPS["held_out"])
+    groups = [set(g) for g in mod.GROUPS.values()]
+    assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
+    assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
-    for name in mod.GROUPS["fresh"]:
+    for name in mod.GROUPS["fresh"] + mod.GROUPS["fresh_2"]:
         case = all_cases[name]
         seconds = case.get("eval", {}).get("episode_seconds", 200.0)
         prof = make_profile(case["profile"], **case["kwargs"])
@@ -731,6 +733,12 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, seconds, 0.1).tolist()])
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert float(v.max()) > (19.99 if name == "stop_and_go_20" else 20.5), name
+    for name in mod.GROUPS["tuning"]:  # the tuning cases cross the laws' handover speeds (16-20 m/s) both ways
+        case = all_cases[name]
+        prof = make_profile(case["profile"], **case["kwargs"])
+        params = prof.sample(4, torch.Generator().manual_seed(3000))
+        v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, 200.0, 0.1).tolist()])
+        assert float(v.min()) < 16.0 and float(v.max()) > 20.0, name
 
 
 def test_jerk_shares_by_speed_add_up_to_the_reports_mean_jerk():

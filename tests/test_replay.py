@@ -118,3 +118,4 @@ def test_the_replay_benchmark_ranks_a_grid_against_its_reference(tmp_path):
         main(["--experiment", "ring_lagrangian_ppo_band_stop", "--cases", "sine_slowest"])
     import ring_base_replay
     assert "sine_wide" in ring_base_replay.NAMES and "sine_wide" not in ring_base_replay.PROBED
+    assert {"sine_slow_wide", "sine_cross"} <= set(ring_base_replay.NAMES)

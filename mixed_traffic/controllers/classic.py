@@ -45,6 +45,9 @@ class CarFollowingCAV(nn.Module):
                                       ("kv_closing_near", p["kv_closing_near"] >= 0.0, ">= 0 (0: off)"),
                                       ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)"),
                                       ("ks_edge", p["ks_edge"] >= 0.0, ">= 0 (0: off)"),
+                                      ("match_h_min", p["match_h_min"] >= 0.0, ">= 0 (0: a fixed floor)"),
+                                      ("match_h_max", p["match_h_max"] >= p["match_h_min"],
+                                       f">= match_h_min ({p['match_h_min']}), so the band never narrows"),
                                       ("match_gap_max", p["match_gap_max"] > max(p["match_gap_min"], 0.0),
                                        f"> match_gap_min ({p['match_gap_min']}) and > 0 (inf: off)")):
                 if not ok:
