@@ -40,9 +40,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from ring_base_probe import NAMES as PROBED  # noqa: E402
 from ring_generalization import GROUPS  # noqa: E402
 
-# the tuning cases that cross the laws' handover speeds (searched on, as PROBED) and the fresh ones, to look into
-# them (no setting was picked on them)
-NAMES = PROBED + GROUPS["tuning"] + GROUPS["fresh"] + GROUPS["fresh_2"]
+SEARCHED = PROBED + GROUPS["tuning"]  # the cases settings are searched on: --cases' default
+# and the fresh ones, to look into them (no setting was picked on them)
+NAMES = SEARCHED + GROUPS["fresh"] + GROUPS["fresh_2"]
 
 
 def _pairs(items: list[str], flag: str, parse) -> dict:
@@ -103,9 +103,8 @@ def main(argv=None) -> dict:
     p.add_argument("--draws", type=int, default=20, help="settings drawn from --vary")
     p.add_argument("--draw-seed", type=int, default=0)
     p.add_argument("--grid", nargs="*", default=[], metavar="KEY=A,B,...", help="every combination of the lists")
-    searched = list(PROBED + GROUPS["tuning"])
-    p.add_argument("--cases", nargs="+", default=searched,
-                   help=f"subset of {list(NAMES)} (default: the first {len(searched)}, the ones settings are searched on)")
+    p.add_argument("--cases", nargs="+", default=list(SEARCHED),
+                   help=f"subset of {list(NAMES)} (default: the first {len(SEARCHED)}, the ones settings are searched on)")
     p.add_argument("--seed", type=int, default=3000, help="evaluation seed (default 3000, a tuning seed)")
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--out", default="outputs/results/ring_base_replay")

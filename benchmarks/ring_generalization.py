@@ -123,7 +123,7 @@ def cases(seconds: float) -> dict[str, dict]:
 
 
 # --cases accepts these names for their cases; without --cases the held-out twelve run (every case of cases()
-# but the others groups')
+# but those of the other groups)
 FRESH = ("eudc_highway", "fast_ramps", "perturbation_24", "sine_wide", "brake_from_28", "stop_and_go_20")
 TUNING = ("sine_cross", "steps_cross", "ramps_cross")
 FRESH_2 = ("sine_slow_wide", "ramps_wide", "steps_16_24", "perturbation_18", "brake_22_to_8", "stop_and_go_25")

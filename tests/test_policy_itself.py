@@ -725,19 +725,20 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
-    for name in mod.GROUPS["fresh"] + mod.GROUPS["fresh_2"]:
+
+    def head_speeds(name: str, seed: int) -> torch.Tensor:  # [time, 4 episodes], every 0.1 s of the episode
         case = all_cases[name]
         seconds = case.get("eval", {}).get("episode_seconds", 200.0)
         prof = make_profile(case["profile"], **case["kwargs"])
-        params = prof.sample(4, torch.Generator().manual_seed(5000))
-        v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, seconds, 0.1).tolist()])
+        params = prof.sample(4, torch.Generator().manual_seed(seed))
+        return torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, seconds, 0.1).tolist()])
+
+    for name in mod.GROUPS["fresh"] + mod.GROUPS["fresh_2"]:
+        v = head_speeds(name, 5000)
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert float(v.max()) > (19.99 if name == "stop_and_go_20" else 20.5), name
     for name in mod.GROUPS["tuning"]:  # the tuning cases cross the laws' handover speeds (16-20 m/s) both ways
-        case = all_cases[name]
-        prof = make_profile(case["profile"], **case["kwargs"])
-        params = prof.sample(4, torch.Generator().manual_seed(3000))
-        v = torch.stack([prof.speed(torch.full((4,), t), params) for t in torch.arange(0.0, 200.0, 0.1).tolist()])
+        v = head_speeds(name, 3000)
         assert float(v.min()) < 16.0 and float(v.max()) > 20.0, name
 
 
