@@ -54,14 +54,30 @@ def main(argv=None) -> dict:
                         "head's braking bound (a lower bound of the jerk of any controller that no head within "
                         "that bound can bring below G m)")
     p.add_argument("--plot-seconds", type=float, nargs=2, default=(20.0, 110.0), help="time window of --plot")
+    p.add_argument("--preview", type=float, nargs="+", default=(), metavar="S",
+                   help="also the columns 'preview S s': a causal CAV that sees S seconds of the head's coming "
+                        "speeds and drives by least-jerk plans inside the band and the stopping-safe set of the run's "
+                        "stop_gap or --stop-gap (oracle.preview_least_jerk; 0: it only measures the head's present "
+                        "speed), with its gaps after the warm-up")
+    p.add_argument("--preview-horizon", type=float, default=15.0, metavar="H",
+                   help="the plans' horizon with --preview: the larger of H and S + 5 s (default 15)")
+    p.add_argument("--preview-plot", default=None, metavar="PNG",
+                   help="with --preview: each case's jerk against the preview's length, beside IDM-as-CAV's, the "
+                        "policy's without its layer and the clairvoyant band's (hollow: the gap left the band)")
+    p.add_argument("--band-weight", type=float, default=20.0, metavar="W",
+                   help="with --preview: the price of a metre outside the band for a step, in command change "
+                        "(m/s^2; default 20: the plans leave the band only where they must)")
     a = p.parse_args(argv)
+    if any(not s_ >= 0 for s_ in a.preview) or not a.preview_horizon > 0 or not a.band_weight > 0:
+        raise SystemExit(f"--preview {list(a.preview)} / --preview-horizon {a.preview_horizon} / --band-weight "
+                         f"{a.band_weight} are invalid; allowed: previews >= 0, a horizon > 0 (s), a weight > 0")
 
     import torch
     from omegaconf import open_dict
     from ring_generalization import cases, named_config
 
     from mixed_traffic.evaluation.harness import eval_scenario, evaluate
-    from mixed_traffic.evaluation.oracle import least_jerk_of_trace, steady_mask
+    from mixed_traffic.evaluation.oracle import least_jerk_of_trace, preview_least_jerk, start_of_trace, steady_mask
     from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
 
     torch.set_num_threads(1)
@@ -70,7 +86,7 @@ def main(argv=None) -> dict:
     all_cases = cases(a.seconds)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    results, plotted = {}, {}
+    results, plotted, preview_gaps = {}, {}, {}
 
     for name in list(a.profiles) or a.cases or list(all_cases):
         traces = {}
@@ -110,6 +126,23 @@ def main(argv=None) -> dict:
                 except ValueError:
                     vals.append(float("nan"))
             row[label] = vals
+        # the plans keep the stopping-safe set of the run's own stopping envelope (transforms.residual.stop_gap),
+        # or of --stop-gap, so that a head's stop cannot make them collide
+        preview_stop = a.stop_gap if a.stop_gap is not None else run_cfg.transforms.get("residual", {}).get("stop_gap")
+        for s_ in a.preview:
+            label, vals, lows, highs, braked = f"preview {s_:g} s: band", [], [], [], []
+            for r in range(a.episodes):
+                vh, v0, g0, vh0 = start_of_trace(traces["IDM-as-CAV"], r, dt=dt)
+                sol = preview_least_jerk(vh, preview=s_, horizon=max(a.preview_horizon, s_ + 5.0), v_start=v0,
+                                         gap_start=g0, head_start=vh0, dt=dt, warmup=e.warmup_seconds, s_min=e.s_min,
+                                         s_max=e.s_max, accel_bounds=(lo, hi), stop_gap=preview_stop,
+                                         band_weight=a.band_weight,
+                                         leader_brake=-float(scenario.head_accel_bounds[0]))
+                braked.append(int(sol.status.split(", ")[1].split()[0]))
+                after = sol.gap[(torch.arange(len(vh)) + 1) * dt >= e.warmup_seconds]
+                vals.append(sol.jerk), lows.append(float(after.min())), highs.append(float(after.max()))
+            row[label] = vals
+            preview_gaps.setdefault(name, {})[label] = [min(lows), max(highs), sum(braked)]
         results[name] = row
         print(name, json.dumps({k: round(sum(v) / len(v), 4) for k, v in row.items()}), flush=True)
     labels = list(next(iter(results.values())))
@@ -120,18 +153,60 @@ def main(argv=None) -> dict:
         for k in labels:
             m = sum(row[k]) / len(row[k])
             cells.append(f"{m:.4f}" if k == "IDM-as-CAV" else f"{m:.4f} ({100 * (m / ref - 1):+.1f} %)")
+            if k in preview_gaps.get(name, {}):
+                low_, high_, braked_ = preview_gaps[name][k]
+                cells[-1] += f"; {low_:.1f}–{high_:.1f} m" + (f"; {braked_} steps braked without a plan" if braked_ else "")
         md.append(f"| {name} | " + " | ".join(cells) + " |")
     table = "\n".join(md)
     own = bool(a.profiles)  # the run's own evaluation episodes
     (out / "jerk_oracle.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
                                                       "seconds": run_cfg.eval.episode_seconds if own else a.seconds,
-                                                      "seed": run_cfg.eval.seed if own else a.seed, "results": results},
+                                                      "seed": run_cfg.eval.seed if own else a.seed, "results": results,
+                                                      "preview_gaps_after_warmup": preview_gaps},
                                                      indent=1))
     (out / "jerk_oracle.md").write_text(table + "\n")
     print(table)
+    if a.preview_plot and a.preview:
+        plot_preview(results, preview_gaps, a.preview, a.preview_plot, s_band=(cfg.eval.s_min, cfg.eval.s_max))
     if a.plot:
         plot_episodes(plotted, a.plot, window=a.plot_seconds, s_band=(cfg.eval.s_min, cfg.eval.s_max))
     return results
+
+
+def plot_preview(results: dict, preview_gaps: dict, previews, path, *, s_band, tol: float = 0.5) -> None:
+    """One panel per case: the preview controller's mean jerk against its preview (s), hollow where its gap
+    left ``s_band`` by more than ``tol`` m after the warm-up, with IDM-as-CAV's, the policy's without its layer
+    and the clairvoyant band's jerk as horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
+    cols = min(3, len(results))
+    rows_ = -(-len(results) // cols)
+    fig, axes = plt.subplots(rows_, cols, figsize=(4.2 * cols, 3.3 * rows_), squeeze=False)
+    for ax in axes.flat[len(results):]:
+        ax.set_visible(False)
+    for ax, (name, row) in zip(axes.flat, results.items()):
+        labels = [f"preview {s_:g} s: band" for s_ in previews]
+        ys = [mean(row[k]) for k in labels]
+        inside = [preview_gaps[name][k][0] >= s_band[0] - tol and preview_gaps[name][k][1] <= s_band[1] + tol
+                  for k in labels]
+        ax.plot(previews, ys, "k-", lw=1)
+        for x, y, ok in zip(previews, ys, inside):
+            ax.plot(x, y, "o", color="k", mfc="k" if ok else "white")
+        for label, color in (("IDM-as-CAV", "C1"), ("policy, no layer", "C0"), ("clairvoyant: band", "C2")):
+            ax.axhline(mean(row[label]), color=color, ls="--", lw=1, label=label)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("preview of the head (s)")
+        ax.set_ylabel("mean |jerk| (m/s³)")
+        ax.set_ylim(bottom=0)
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot_episodes(plotted: dict, path, *, window, s_band) -> None:

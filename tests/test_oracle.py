@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from mixed_traffic.evaluation.harness import abs_jerk
-from mixed_traffic.evaluation.oracle import least_jerk, least_jerk_of_trace, steady_mask
+from mixed_traffic.evaluation.oracle import least_jerk, least_jerk_of_trace, preview_least_jerk, steady_mask
 from mixed_traffic.physics import idm_accel, integrate
 
 DT = 0.1
@@ -121,6 +121,7 @@ def test_the_trace_helper_recovers_the_start_and_the_reports_steady_samples():
     ({"dt": 0.0}, "dt"), ({"v_start": -1.0}, "v_start"), ({"gap_start": 0.0}, "gap_start"),
     ({"accel_bounds": (1.0, 3.0)}, "accel_bounds"), ({"s_max": 4.0}, "s_max"), ({"norm": "l2"}, "norm"),
     ({"rmse": 0.2}, "steady"), ({"rmse": -0.1, "steady": torch.ones(600, dtype=torch.bool)}, "rmse"),
+    ({"end_speed": -1.0}, "end_speed"), ({"band_weight": 0.0}, "band_weight"), ({"a_prev": float("nan")}, "a_prev"),
 ])
 def test_bad_input_names_the_argument(kwargs, field):
     base = dict(v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
@@ -167,3 +168,80 @@ def test_stopping_constraint_holds_the_layers_own_rule_at_every_step_and_costs_j
     assert safe.jerk > free.jerk
     with pytest.raises(ValueError, match="leader_brake"):
         least_jerk(head, stop_gap=5.0, **kw)
+
+
+def test_window_options_end_speed_soft_band_and_the_previous_command():
+    """What a plan over a window needs: the last speed fixed, a band made soft so that a start outside it still
+    has a plan (which a hard band refuses), and the change from the command before the window priced."""
+    head = _step_head(30.0, 30.0, 0, 600)
+    kw = dict(v_start=10.0, gap_start=30.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    with pytest.raises(ValueError, match="no command sequence"):
+        least_jerk(head, **kw)
+    soft = least_jerk(head, band_weight=1.0, end_speed=30.0, **kw)
+    assert float(soft.speed[-1]) == pytest.approx(30.0, abs=1e-6)
+    assert float(soft.gap.max()) > 40.0 and float(soft.gap[-1]) <= 40.0 + 1e-6  # out of the band, and back in
+    steady = _step_head(16.0, 16.0, 0, 300)
+    free = least_jerk(steady, v_start=16.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    assert free.jerk == pytest.approx(0.0, abs=1e-9)  # any constant command that keeps the band: no change
+    # the command before the window is 0.02 m/s^2, which the band allows for the whole window (the gap falls by
+    # 9 m): changing it would cost, so the plan holds it
+    held = least_jerk(steady, v_start=16.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0, a_prev=0.02)
+    assert torch.allclose(held.accel, torch.full_like(held.accel, 0.02), atol=1e-7)
+    assert not torch.allclose(free.accel, held.accel, atol=1e-7)
+
+
+def _ramp_head(t_step: float, n: int = 900, v0: float = 20.0, v1: float = 26.0) -> torch.Tensor:
+    t = (torch.arange(n) + 1) * DT
+    return torch.clamp(v0 + 2.0 * (t - t_step), v0, v1).double()
+
+
+def test_a_preview_of_the_head_buys_jerk_and_the_clairvoyant_sequence_stays_below():
+    """A step of the head 6 m/s up at 30 s: the CAV that only measures the head answers it inside the band
+    with the most jerk, 5 s of preview with less, and the clairvoyant sequence with the least; all keep the
+    band, so all stay at or above the clairvoyant optimum."""
+    head = _ramp_head(30.0)
+    kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    blind = preview_least_jerk(head, preview=0.0, horizon=15.0, **kw)
+    seen = preview_least_jerk(head, preview=5.0, horizon=15.0, **kw)
+    best = least_jerk(head, **kw)
+    for r in (blind, seen):
+        assert float(r.gap.min()) >= 5.0 - 1e-6 and float(r.gap.max()) <= 40.0 + 1e-6
+    assert best.jerk < seen.jerk < blind.jerk
+    # the driven sequence, replayed through the env's integrator, gives its gaps
+    v, gap = torch.tensor(20.0, dtype=torch.float64), torch.tensor(20.0, dtype=torch.float64)
+    for k in range(0, head.numel()):
+        _, v, _ = integrate(torch.zeros(()), v, blind.accel[k], DT)
+        gap = gap + (head[k] - v) * DT
+        assert float(gap) == pytest.approx(float(blind.gap[k]), abs=1e-6)
+
+
+def test_a_preview_controller_does_not_use_what_it_cannot_see():
+    """Two heads equal up to 30 s and different after it: with no preview the commands up to 30 s are the same;
+    with 5 s of preview they are the same up to 25 s and differ before 30 s (it saw the step coming)."""
+    up, down = _ramp_head(30.0), _ramp_head(30.0, v1=20.0)
+    kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0, horizon=15.0)
+    k30, k25 = 299, 249  # the steps that end at 30 s and 25 s
+    a, b = (preview_least_jerk(h, preview=0.0, **kw).accel for h in (up, down))
+    assert torch.equal(a[:k30 + 1], b[:k30 + 1]) and not torch.allclose(a, b)
+    a, b = (preview_least_jerk(h, preview=5.0, **kw).accel for h in (up, down))
+    assert torch.equal(a[:k25 + 1], b[:k25 + 1]) and not torch.allclose(a[:k30], b[:k30])
+
+
+def test_a_blind_preview_controller_inside_the_stopping_set_survives_a_head_that_stops():
+    """The head brakes from 15 m/s to a standstill at 3 m/s^2 at 20 s. The controller that only measures it
+    keeps every step in the stopping-safe set of a 5-m gap and a 3 m/s^2 head, so it stops with at least
+    5 m to spare, and it needs no emergency step to do so."""
+    t = (torch.arange(600) + 1) * DT
+    head = torch.clamp(15.0 - 3.0 * (t - 20.0).clamp_min(0.0), min=0.0).double()
+    r = preview_least_jerk(head, preview=0.0, horizon=10.0, v_start=15.0, gap_start=25.0, dt=DT, warmup=0.0,
+                           s_min=5.0, s_max=40.0, accel_bounds=(-3.0, 2.0), stop_gap=5.0, leader_brake=3.0)
+    assert float(r.gap.min()) >= 5.0 - 1e-4 and float(r.speed[-1]) == pytest.approx(0.0, abs=1e-6)
+    assert r.status.endswith(", 0 steps braked without one")
+
+
+@pytest.mark.parametrize("kwargs, field", [({"preview": -1.0}, "preview"), ({"preview": 20.0}, "horizon"),
+                                           ({"replan": 30.0}, "replan")])
+def test_bad_preview_input_names_the_argument(kwargs, field):
+    base = dict(preview=2.0, horizon=15.0, v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    with pytest.raises(ValueError, match=field):
+        preview_least_jerk(_ramp_head(30.0), **{**base, **kwargs})

@@ -56,8 +56,15 @@ def _check(name: str, ok: bool, allowed: str, got) -> None:
 def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmup: float, s_min: float,
                s_max: float | None, accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
                steady=None, rmse: float | None = None, norm: str = "l1", stop_gap: float | None = None,
-               leader_brake: float | None = None, time_limit: float = 120.0) -> OracleResult:
+               leader_brake: float | None = None, time_limit: float = 120.0, a_prev: float | None = None,
+               end_speed: float | None = None, band_weight: float | None = None) -> OracleResult:
     """Solve the episode's least-jerk program (module docstring).
+
+    Three options serve a plan over a window of an episode (:func:`preview_least_jerk`): ``a_prev`` (m/s^2),
+    the command before the first step, whose change to the first command then counts as well; ``end_speed``
+    (m/s >= 0), the speed the last step must end at; ``band_weight`` (> 0), the band made soft: each metre
+    outside ``[s_min, s_max]`` on a step costs that much command change (m/s^2), so a plan exists whatever the
+    start (``gap_floor`` stays hard).
 
     ``stop_gap`` (m; with ``leader_brake``, m/s^2 > 0): every step must also end in the stopping-safe set,
     the safety layer's ``"stopping"`` rule (:func:`transforms.safety_layer.safe_accel_upper`): if the head
@@ -92,6 +99,9 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     _check("s_max", s_max is None or s_max > s_min, "None or > s_min", s_max)
     _check("norm", norm in ("l1", "linf"), "'l1' or 'linf'", norm)
     _check("time_limit", time_limit > 0, "> 0 (seconds)", time_limit)
+    _check("a_prev", a_prev is None or bool(np.isfinite(a_prev)), "None or finite", a_prev)
+    _check("end_speed", end_speed is None or end_speed >= 0, "None or >= 0 (m/s)", end_speed)
+    _check("band_weight", band_weight is None or band_weight > 0, "None or > 0", band_weight)
     st = np.zeros(0, dtype=int)  # the steady samples the RMSE bar counts
     if rmse is not None:
         _check("rmse", rmse > 0, "> 0", rmse)
@@ -132,8 +142,39 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     bounds = ([(lo, hi)] * N + [(0.0, None)] * N
               + [((s_min if a else gap_floor), (s_max if a and s_max is not None else None)) for a in after]
               + [(0.0, None)] * (N - 1) + [(0.0, rmse if norm == "linf" else None)] * S)
+    if end_speed is not None:
+        bounds[2 * N - 1] = (end_speed, end_speed)
     cost = np.zeros(4 * N - 1 + S)
     cost[3 * N:4 * N - 1] = 1.0  # the total variation of the command; the mean |jerk| is it / ((N - 1) dt)
+    extra = []  # further columns after e: u_0 >= |a_0 - a_prev|, then the band's slack (N) when soft
+    if a_prev is not None:
+        first = sp.csr_matrix(([1.0], ([0], [0])), shape=(1, N))
+        rows = [sp.hstack([r, Z(r.shape[0], 1)]) for r in rows]
+        rows += [sp.hstack([first, Z(1, 3 * N - 1 + S), -sp.identity(1)]),
+                 sp.hstack([-first, Z(1, 3 * N - 1 + S), -sp.identity(1)])]
+        b_ub += [np.array([a_prev]), np.array([-a_prev])]
+        extra.append((1, 1.0, (0.0, None)))
+    if band_weight is not None:
+        width = sum(n for n, _, _ in extra)
+        band = bounds[2 * N:3 * N]
+        lower = np.array([b[0] for b in band])
+        upper = np.array([np.inf if b[1] is None else b[1] for b in band])
+        bounds[2 * N:3 * N] = [(gap_floor, None)] * N  # only the floor stays hard; the band moves to rows with slack
+        cols = 4 * N - 1 + S + width
+        pick_g = sp.hstack([Z(N, 2 * N), eye, Z(N, cols - 3 * N)])
+        rows = [sp.hstack([r, Z(r.shape[0], N)]) for r in rows]
+        has_lo, has_hi = np.flatnonzero(lower > gap_floor), np.flatnonzero(np.isfinite(upper))
+        for idx, sign, edge in ((has_lo, -1.0, -lower), (has_hi, 1.0, upper)):
+            if len(idx):  # sign g_t - sigma_t <= sign edge_t
+                sel = sp.csr_matrix((np.ones(len(idx)), (np.arange(len(idx)), idx)), shape=(len(idx), N))
+                rows.append(sp.hstack([sign * sel @ pick_g, -sel]))
+                b_ub.append(edge[idx])
+        extra.append((N, float(band_weight), (0.0, None)))
+    for n, c, bound in extra:
+        cost = np.concatenate([cost, np.full(n, c)])
+        bounds += [bound] * n
+    width = sum(n for n, _, _ in extra)
+    a_eq = sp.hstack([a_eq, Z(a_eq.shape[0], width)]).tocsr() if width else a_eq
     problem = dict(A_ub=sp.vstack(rows).tocsr(), b_ub=np.concatenate(b_ub), A_eq=a_eq, b_eq=b_eq, bounds=bounds)
     # the interior-point solver is fast here (1-2 s); its crossover to a vertex stalled on a few episodes
     # (a near-degenerate optimum), where the dual simplex finishes instead
@@ -146,8 +187,82 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     if res.status != 0:
         raise RuntimeError(f"least_jerk: HiGHS did not finish within time_limit={time_limit} s ({res.message})")
     x = torch.as_tensor(res.x)
-    return OracleResult(jerk=float(res.fun) / ((N - 1) * dt), accel=x[:N], speed=x[N:2 * N], gap=x[2 * N:3 * N],
+    tv = float(np.abs(np.diff(res.x[:N])).sum())  # the objective less the first change and the band's price
+    return OracleResult(jerk=tv / ((N - 1) * dt), accel=x[:N], speed=x[N:2 * N], gap=x[2 * N:3 * N],
                         status=res.message)
+
+
+def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: float, gap_start: float, dt: float,
+                       warmup: float, s_min: float, s_max: float, head_start: float | None = None,
+                       accel_bounds: tuple[float, float] = (-3.0, 3.0), band_weight: float = 1.0,
+                       replan: float = 0.5, stop_gap: float | None = None,
+                       leader_brake: float | None = None) -> OracleResult:
+    """A causal CAV that sees ``preview`` seconds of the head's coming speeds and drives by least-jerk plans.
+
+    Every ``replan`` seconds it solves :func:`least_jerk` over the next ``horizon`` seconds from its present
+    speed, gap and command (``a_prev``): the head's speeds known for the first ``preview`` seconds (its plan,
+    as a connected head could broadcast it) and held at the last known one after that (``preview`` 0: the
+    head's present speed, all a follower that only measures it knows), the band soft (``band_weight``), and
+    the plan ending at that held speed. It drives the plan's commands until the next plan, behind the head's
+    true speeds (the env's ``"euler"`` update). ``preview`` from 0 up to the episode's length spans the causal
+    controller that only measures the head and the clairvoyant sequence of :func:`least_jerk`, so the jerk
+    it reaches in the band as ``preview`` grows shows how much of the head's future a jerk bar asks for.
+
+    A follower that cannot see a head's stop coming cannot keep a gap floor by planning alone: with
+    ``stop_gap`` and ``leader_brake`` each command is capped by the stopping rule of the base's stopping
+    envelope and the safety layer (:func:`transforms.safety_layer.safe_accel_upper`, on the present gap and
+    speeds), so the CAV stays collision-free whatever the head does within ``leader_brake``; a capped step
+    starts a new plan at the next. Where a plan has no solution, the step brakes at ``accel_bounds[0]``
+    (counted in ``status``).
+
+    ``head_speed`` (``[N]``): the head's speed after each step; ``head_start``: before the first (default
+    ``head_speed[0]``). Returns the driven sequence (``jerk``: its mean |jerk| over steps 1..N-1, as the
+    report counts it; ``status``: the count of plans and of steps braked without one).
+    """
+    from transforms.safety_layer import safe_accel_upper
+
+    vh = torch.as_tensor(head_speed, dtype=torch.float64).flatten()
+    N = vh.shape[0]
+    _check("preview", preview >= 0, ">= 0 (s)", preview)
+    if stop_gap is not None:
+        _check("leader_brake", leader_brake is not None and leader_brake > 0, "> 0 (m/s^2) with stop_gap", leader_brake)
+    _check("horizon", horizon >= max(preview, 2 * dt), f">= max(preview, {2 * dt}) (s)", horizon)
+    _check("replan", dt <= replan <= horizon, f"in [{dt}, horizon] (s)", replan)
+    P, H, every = int(round(preview / dt)), int(round(horizon / dt)), max(1, int(round(replan / dt)))
+    lo, hi = accel_bounds
+    v, gap = float(v_start), float(gap_start)
+    last_seen = float(vh[0] if head_start is None else head_start)
+    a_prev, plan, used = None, None, 0
+    accel, speed, gaps, plans, braked = [], [], [], 0, 0
+    for k in range(N):
+        if plan is None or used == every:
+            seen = vh[k:k + P]
+            held = float(seen[-1]) if len(seen) else last_seen
+            pred = torch.cat([seen, torch.full((H - len(seen),), held, dtype=torch.float64)])
+            try:
+                plan = least_jerk(pred, v_start=v, gap_start=max(gap, 1e-3), dt=dt, warmup=warmup - k * dt,
+                                  s_min=s_min, s_max=s_max, accel_bounds=accel_bounds, a_prev=a_prev,
+                                  end_speed=held, band_weight=band_weight).accel
+            except ValueError:  # no plan from here: brake for this step and plan again at the next
+                plan = torch.full((1,), float(lo), dtype=torch.float64)
+                braked += 1
+            used, plans = 0, plans + 1
+        a = min(max(float(plan[min(used, len(plan) - 1)]), lo), hi)
+        used = every if len(plan) == 1 else used + 1
+        if stop_gap is not None:
+            state = torch.tensor([gap, v, last_seen], dtype=torch.float64)
+            cap = float(safe_accel_upper(*state, s_min=stop_gap, dt=dt, brake=-lo, leader_brake=leader_brake))
+            if a > cap:
+                a, used = max(cap, lo), every
+        v_next = max(0.0, v + a * dt)
+        executed = (v_next - v) / dt
+        gap += (float(vh[k]) - v_next) * dt
+        v, a_prev, last_seen = v_next, executed, float(vh[k])
+        accel.append(executed), speed.append(v), gaps.append(gap)
+    acc = torch.tensor(accel, dtype=torch.float64)
+    return OracleResult(jerk=float(acc.diff().abs().sum()) / ((N - 1) * dt), accel=acc,
+                        speed=torch.tensor(speed, dtype=torch.float64), gap=torch.tensor(gaps, dtype=torch.float64),
+                        status=f"{plans} plans, {braked} steps braked without one")
 
 
 def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, leader_brake: float,
@@ -188,17 +303,24 @@ def least_jerk_of_trace(trace, row: int, *, dt: float, warmup: float, s_min: flo
                         leader_brake: float | None = None) -> OracleResult:
     """:func:`least_jerk` on episode ``row`` of a :class:`~mixed_traffic.evaluation.harness.Trace` (its valid
     steps); the CAV's start is recovered from its first step (``"euler"`` update)."""
+    vh, v_start, gap_start, _ = start_of_trace(trace, row, dt=dt)
+    mask = None if steady is None else torch.as_tensor(steady)[row, :len(vh)]
+    return least_jerk(vh, v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
+                      s_max=s_max, accel_bounds=accel_bounds, steady=mask, rmse=rmse, norm=norm,
+                      stop_gap=stop_gap, leader_brake=leader_brake)
+
+
+def start_of_trace(trace, row: int, *, dt: float) -> tuple[torch.Tensor, float, float, float]:
+    """``(head_speed, v_start, gap_start, head_start)`` of episode ``row`` of a trace (its valid steps): the
+    head's speeds after each step, and the CAV's speed, its gap and the head's speed before the first step,
+    recovered from that step (``"euler"`` update). The CAV must drive right behind the head."""
     n = int(trace.valid[row].sum())
     gap, head_gap = trace.gap[row, :n].double(), trace.head_gap[row, :n].double()
     if not torch.allclose(gap, head_gap):
         raise ValueError("least_jerk_of_trace: the CAV must drive right behind the head (its gap is the head gap)")
     v, a, vh = trace.cav_speed[row, :n].double(), trace.cav_accel[row, :n].double(), trace.head_speed[row, :n].double()
-    v_start = float(v[0] - a[0] * dt)
-    gap_start = float(gap[0] - dt * (vh[0] - v[0]))
-    mask = None if steady is None else torch.as_tensor(steady)[row, :n]
-    return least_jerk(vh, v_start=max(v_start, 0.0), gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
-                      s_max=s_max, accel_bounds=accel_bounds, steady=mask, rmse=rmse, norm=norm,
-                      stop_gap=stop_gap, leader_brake=leader_brake)
+    head_start = float(vh[0] - trace.head_accel[row, 0].double() * dt)
+    return vh, max(float(v[0] - a[0] * dt), 0.0), float(gap[0] - dt * (vh[0] - v[0])), max(head_start, 0.0)
 
 
 def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tensor:
@@ -209,4 +331,4 @@ def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tens
     return steady_samples(trace.head_accel, trace.valid & (trace.time >= warmup), int(round(settle / dt)))
 
 
-__all__ = ["least_jerk", "least_jerk_of_trace", "steady_mask", "OracleResult"]
+__all__ = ["least_jerk", "least_jerk_of_trace", "preview_least_jerk", "start_of_trace", "steady_mask", "OracleResult"]
