@@ -58,7 +58,7 @@ def main(argv=None) -> dict:
                    help="also the columns 'preview S s': a causal CAV that sees S seconds of the head's coming "
                         "speeds and drives by least-jerk plans inside the band and the stopping-safe set of the run's "
                         "stop_gap or --stop-gap (oracle.preview_least_jerk; 0: it only measures the head's present "
-                        "speed), with its gaps after the warm-up")
+                        "speed), with its gaps after the warm-up and its steady RMSE")
     p.add_argument("--preview-horizon", type=float, default=15.0, metavar="H",
                    help="the plans' horizon with --preview: the larger of H and S + 5 s (default 15)")
     p.add_argument("--preview-plot", default=None, metavar="PNG",
@@ -130,7 +130,7 @@ def main(argv=None) -> dict:
         # or of --stop-gap, so that a head's stop cannot make them collide
         preview_stop = a.stop_gap if a.stop_gap is not None else run_cfg.transforms.get("residual", {}).get("stop_gap")
         for s_ in a.preview:
-            label, vals, lows, highs, braked = f"preview {s_:g} s: band", [], [], [], []
+            label, vals, lows, highs, braked, rmses = f"preview {s_:g} s: band", [], [], [], [], []
             for r in range(a.episodes):
                 vh, v0, g0, vh0 = start_of_trace(traces["IDM-as-CAV"], r, dt=dt)
                 sol = preview_least_jerk(vh, preview=s_, horizon=max(a.preview_horizon, s_ + 5.0), v_start=v0,
@@ -139,10 +139,13 @@ def main(argv=None) -> dict:
                                          band_weight=a.band_weight,
                                          leader_brake=-float(scenario.head_accel_bounds[0]))
                 braked.append(int(sol.status.split(", ")[1].split()[0]))
-                after = sol.gap[(torch.arange(len(vh)) + 1) * dt >= e.warmup_seconds]
+                late = (torch.arange(len(vh)) + 1) * dt >= e.warmup_seconds
+                after = sol.gap[late]
                 vals.append(sol.jerk), lows.append(float(after.min())), highs.append(float(after.max()))
+                on = steady[r, :len(vh)] if bool(steady[r, :len(vh)].any()) else late  # no plateaus: all, as the report
+                rmses.append(float((sol.speed - vh)[on].pow(2).mean().sqrt()))
             row[label] = vals
-            preview_gaps.setdefault(name, {})[label] = [min(lows), max(highs), sum(braked)]
+            preview_gaps.setdefault(name, {})[label] = [min(lows), max(highs), sum(braked), sum(rmses) / len(rmses)]
         results[name] = row
         print(name, json.dumps({k: round(sum(v) / len(v), 4) for k, v in row.items()}), flush=True)
     labels = list(next(iter(results.values())))
@@ -154,8 +157,9 @@ def main(argv=None) -> dict:
             m = sum(row[k]) / len(row[k])
             cells.append(f"{m:.4f}" if k == "IDM-as-CAV" else f"{m:.4f} ({100 * (m / ref - 1):+.1f} %)")
             if k in preview_gaps.get(name, {}):
-                low_, high_, braked_ = preview_gaps[name][k]
-                cells[-1] += f"; {low_:.1f}–{high_:.1f} m" + (f"; {braked_} steps braked without a plan" if braked_ else "")
+                low_, high_, braked_, rmse_ = preview_gaps[name][k]
+                cells[-1] += f"; {low_:.1f}–{high_:.1f} m; RMSE {rmse_:.2f}"
+                cells[-1] += f"; {braked_} steps braked without a plan" if braked_ else ""
         md.append(f"| {name} | " + " | ".join(cells) + " |")
     table = "\n".join(md)
     own = bool(a.profiles)  # the run's own evaluation episodes
@@ -191,8 +195,8 @@ def plot_preview(results: dict, preview_gaps: dict, previews, path, *, s_band, t
     for ax, (name, row) in zip(axes.flat, results.items()):
         labels = [f"preview {s_:g} s: band" for s_ in previews]
         ys = [mean(row[k]) for k in labels]
-        inside = [preview_gaps[name][k][0] >= s_band[0] - tol and preview_gaps[name][k][1] <= s_band[1] + tol
-                  for k in labels]
+        inside = [low >= s_band[0] - tol and high <= s_band[1] + tol for low, high, *_ in
+                  (preview_gaps[name][k] for k in labels)]
         ax.plot(previews, ys, "k-", lw=1)
         for x, y, ok in zip(previews, ys, inside):
             ax.plot(x, y, "o", color="k", mfc="k" if ok else "white")

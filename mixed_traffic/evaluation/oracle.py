@@ -317,7 +317,7 @@ def start_of_trace(trace, row: int, *, dt: float) -> tuple[torch.Tensor, float, 
     n = int(trace.valid[row].sum())
     gap, head_gap = trace.gap[row, :n].double(), trace.head_gap[row, :n].double()
     if not torch.allclose(gap, head_gap):
-        raise ValueError("least_jerk_of_trace: the CAV must drive right behind the head (its gap is the head gap)")
+        raise ValueError("start_of_trace: the CAV must drive right behind the head (its gap is the head gap)")
     v, a, vh = trace.cav_speed[row, :n].double(), trace.cav_accel[row, :n].double(), trace.head_speed[row, :n].double()
     head_start = float(vh[0] - trace.head_accel[row, 0].double() * dt)
     return vh, max(float(v[0] - a[0] * dt), 0.0), float(gap[0] - dt * (vh[0] - v[0])), max(head_start, 0.0)
