@@ -64,13 +64,18 @@ def main(argv=None) -> dict:
     p.add_argument("--preview-plot", default=None, metavar="PNG",
                    help="with --preview: each case's jerk against the preview's length, beside IDM-as-CAV's, the "
                         "policy's without its layer and the clairvoyant band's (hollow: the gap left the band)")
+    p.add_argument("--track-weight", type=float, default=None, metavar="W",
+                   help="with --preview: also price each m/s of speed error on a step at W m/s^2 of command change "
+                        "(default: none; the plans then price jerk and the band only)")
     p.add_argument("--band-weight", type=float, default=20.0, metavar="W",
                    help="with --preview: the price of a metre outside the band for a step, in command change "
                         "(m/s^2; default 20: the plans leave the band only where they must)")
     a = p.parse_args(argv)
-    if any(not s_ >= 0 for s_ in a.preview) or not a.preview_horizon > 0 or not a.band_weight > 0:
+    if (any(not s_ >= 0 for s_ in a.preview) or not a.preview_horizon > 0 or not a.band_weight > 0
+            or (a.track_weight is not None and not a.track_weight > 0)):
         raise SystemExit(f"--preview {list(a.preview)} / --preview-horizon {a.preview_horizon} / --band-weight "
-                         f"{a.band_weight} are invalid; allowed: previews >= 0, a horizon > 0 (s), a weight > 0")
+                         f"{a.band_weight} / --track-weight {a.track_weight} are invalid; allowed: previews >= 0, a "
+                         "horizon > 0 (s), weights > 0")
 
     import torch
     from omegaconf import open_dict
@@ -136,7 +141,7 @@ def main(argv=None) -> dict:
                 sol = preview_least_jerk(vh, preview=s_, horizon=max(a.preview_horizon, s_ + 5.0), v_start=v0,
                                          gap_start=g0, head_start=vh0, dt=dt, warmup=e.warmup_seconds, s_min=e.s_min,
                                          s_max=e.s_max, accel_bounds=(lo, hi), stop_gap=preview_stop,
-                                         band_weight=a.band_weight,
+                                         band_weight=a.band_weight, track_weight=a.track_weight,
                                          leader_brake=-float(scenario.head_accel_bounds[0]))
                 braked.append(int(sol.status.split(", ")[1].split()[0]))
                 late = (torch.arange(len(vh)) + 1) * dt >= e.warmup_seconds

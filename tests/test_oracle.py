@@ -122,6 +122,7 @@ def test_the_trace_helper_recovers_the_start_and_the_reports_steady_samples():
     ({"accel_bounds": (1.0, 3.0)}, "accel_bounds"), ({"s_max": 4.0}, "s_max"), ({"norm": "l2"}, "norm"),
     ({"rmse": 0.2}, "steady"), ({"rmse": -0.1, "steady": torch.ones(600, dtype=torch.bool)}, "rmse"),
     ({"end_speed": -1.0}, "end_speed"), ({"band_weight": 0.0}, "band_weight"), ({"a_prev": float("nan")}, "a_prev"),
+    ({"track_weight": -1.0}, "track_weight"),
 ])
 def test_bad_input_names_the_argument(kwargs, field):
     base = dict(v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
@@ -188,6 +189,18 @@ def test_window_options_end_speed_soft_band_and_the_previous_command():
     held = least_jerk(steady, v_start=16.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0, a_prev=0.02)
     assert torch.allclose(held.accel, torch.full_like(held.accel, 0.02), atol=1e-7)
     assert not torch.allclose(free.accel, held.accel, atol=1e-7)
+
+
+def test_a_tracking_price_trades_jerk_for_a_smaller_speed_error():
+    """With each m/s of speed error priced, the plan follows a head's step more closely (a smaller mean speed
+    error) and pays for it in jerk; without the price, the same window's plan has the least jerk."""
+    head = _ramp_head(10.0, n=400)
+    kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
+    free = least_jerk(head, **kw)
+    tracked = least_jerk(head, track_weight=0.5, **kw)
+    error = lambda r: float((r.speed - head).abs().mean())  # noqa: E731
+    assert error(tracked) < 0.5 * error(free)
+    assert tracked.jerk > free.jerk
 
 
 def _ramp_head(t_step: float, n: int = 900, v0: float = 20.0, v1: float = 26.0) -> torch.Tensor:

@@ -57,14 +57,16 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                s_max: float | None, accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
                steady=None, rmse: float | None = None, norm: str = "l1", stop_gap: float | None = None,
                leader_brake: float | None = None, time_limit: float = 120.0, a_prev: float | None = None,
-               end_speed: float | None = None, band_weight: float | None = None) -> OracleResult:
+               end_speed: float | None = None, band_weight: float | None = None,
+               track_weight: float | None = None) -> OracleResult:
     """Solve the episode's least-jerk program (module docstring).
 
     Three options serve a plan over a window of an episode (:func:`preview_least_jerk`): ``a_prev`` (m/s^2),
     the command before the first step, whose change to the first command then counts as well; ``end_speed``
     (m/s >= 0), the speed the last step must end at; ``band_weight`` (> 0), the band made soft: each metre
     outside ``[s_min, s_max]`` on a step costs that much command change (m/s^2), so a plan exists whatever the
-    start (``gap_floor`` stays hard).
+    start (``gap_floor`` stays hard); ``track_weight`` (> 0), each m/s of ``|v - v_head|`` on a step costs that
+    much command change (a plan that tracks the head as well as it smooths).
 
     ``stop_gap`` (m; with ``leader_brake``, m/s^2 > 0): every step must also end in the stopping-safe set,
     the safety layer's ``"stopping"`` rule (:func:`transforms.safety_layer.safe_accel_upper`): if the head
@@ -102,6 +104,7 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     _check("a_prev", a_prev is None or bool(np.isfinite(a_prev)), "None or finite", a_prev)
     _check("end_speed", end_speed is None or end_speed >= 0, "None or >= 0 (m/s)", end_speed)
     _check("band_weight", band_weight is None or band_weight > 0, "None or > 0", band_weight)
+    _check("track_weight", track_weight is None or track_weight > 0, "None or > 0", track_weight)
     st = np.zeros(0, dtype=int)  # the steady samples the RMSE bar counts
     if rmse is not None:
         _check("rmse", rmse > 0, "> 0", rmse)
@@ -170,6 +173,13 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                 rows.append(sp.hstack([sign * sel @ pick_g, -sel]))
                 b_ub.append(edge[idx])
         extra.append((N, float(band_weight), (0.0, None)))
+    if track_weight is not None:  # e_t >= +-(v_t - v_head_t) on every step
+        cols = 4 * N - 1 + S + sum(n for n, _, _ in extra)
+        pick_v = sp.hstack([Z(N, N), eye, Z(N, cols - 2 * N)])
+        rows = [sp.hstack([r, Z(r.shape[0], N)]) for r in rows]
+        rows += [sp.hstack([pick_v, -eye]), sp.hstack([-pick_v, -eye])]
+        b_ub += [vh, -vh]
+        extra.append((N, float(track_weight), (0.0, None)))
     for n, c, bound in extra:
         cost = np.concatenate([cost, np.full(n, c)])
         bounds += [bound] * n
@@ -196,14 +206,14 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
                        warmup: float, s_min: float, s_max: float, head_start: float | None = None,
                        accel_bounds: tuple[float, float] = (-3.0, 3.0), band_weight: float = 1.0,
                        replan: float = 0.5, stop_gap: float | None = None,
-                       leader_brake: float | None = None) -> OracleResult:
+                       leader_brake: float | None = None, track_weight: float | None = None) -> OracleResult:
     """A causal CAV that sees ``preview`` seconds of the head's coming speeds and drives by least-jerk plans.
 
     Every ``replan`` seconds it solves :func:`least_jerk` over the next ``horizon`` seconds from its present
     speed, gap and command (``a_prev``): the head's speeds known for the first ``preview`` seconds (its plan,
     as a connected head could broadcast it) and held at the last known one after that (``preview`` 0: the
-    head's present speed, all a follower that only measures it knows), the band soft (``band_weight``), and
-    the plan ending at that held speed. It drives the plan's commands until the next plan, behind the head's
+    head's present speed, all a follower that only measures it knows), the band soft (``band_weight``), the
+    speed error priced when ``track_weight`` is given, and the plan ending at that held speed. It drives the plan's commands until the next plan, behind the head's
     true speeds (the env's ``"euler"`` update). ``preview`` from 0 up to the episode's length spans the causal
     controller that only measures the head and the clairvoyant sequence of :func:`least_jerk`, so the jerk
     it reaches in the band as ``preview`` grows shows how much of the head's future a jerk bar asks for.
@@ -242,7 +252,7 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
             try:
                 plan = least_jerk(pred, v_start=v, gap_start=max(gap, 1e-3), dt=dt, warmup=warmup - k * dt,
                                   s_min=s_min, s_max=s_max, accel_bounds=accel_bounds, a_prev=a_prev,
-                                  end_speed=held, band_weight=band_weight).accel
+                                  end_speed=held, band_weight=band_weight, track_weight=track_weight).accel
             except ValueError:  # no plan from here: brake for this step and plan again at the next
                 plan = torch.full((1,), float(lo), dtype=torch.float64)
                 braked += 1
