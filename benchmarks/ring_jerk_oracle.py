@@ -81,7 +81,7 @@ def main(argv=None) -> dict:
     from omegaconf import open_dict
     from ring_generalization import cases, named_config
 
-    from mixed_traffic.evaluation.harness import eval_scenario, evaluate
+    from mixed_traffic.evaluation.harness import eval_scenario, evaluate, follower_metrics
     from mixed_traffic.evaluation.oracle import least_jerk_of_trace, preview_least_jerk, start_of_trace, steady_mask
     from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
 
@@ -134,21 +134,26 @@ def main(argv=None) -> dict:
         # the plans keep the stopping-safe set of the run's own stopping envelope (transforms.residual.stop_gap),
         # or of --stop-gap, so that a head's stop cannot make them collide
         preview_stop = a.stop_gap if a.stop_gap is not None else run_cfg.transforms.get("residual", {}).get("stop_gap")
+        ref_tr = traces["IDM-as-CAV"]
         for s_ in a.preview:
-            label, vals, lows, highs, braked, rmses = f"preview {s_:g} s: band", [], [], [], [], []
+            label, vals, lows, highs, braked, rmses = preview_label(s_), [], [], [], [], []
             for r in range(a.episodes):
-                vh, v0, g0, vh0 = start_of_trace(traces["IDM-as-CAV"], r, dt=dt)
+                vh, v0, g0, vh0 = start_of_trace(ref_tr, r, dt=dt)
                 sol = preview_least_jerk(vh, preview=s_, horizon=max(a.preview_horizon, s_ + 5.0), v_start=v0,
                                          gap_start=g0, head_start=vh0, dt=dt, warmup=e.warmup_seconds, s_min=e.s_min,
                                          s_max=e.s_max, accel_bounds=(lo, hi), stop_gap=preview_stop,
                                          band_weight=a.band_weight, track_weight=a.track_weight,
                                          leader_brake=-float(scenario.head_accel_bounds[0]))
-                braked.append(int(sol.status.split(", ")[1].split()[0]))
-                late = (torch.arange(len(vh)) + 1) * dt >= e.warmup_seconds
-                after = sol.gap[late]
-                vals.append(sol.jerk), lows.append(float(after.min())), highs.append(float(after.max()))
-                on = steady[r, :len(vh)] if bool(steady[r, :len(vh)].any()) else late  # no plateaus: all, as the report
-                rmses.append(float((sol.speed - vh)[on].pow(2).mean().sqrt()))
+                n = len(vh)  # the report's own gap and steady-RMSE figures of the driven sequence
+                valid = ref_tr.valid[r:r + 1, :n]
+                m = follower_metrics(gap=sol.gap[None], head_gap=sol.gap[None], speed=sol.speed[None],
+                                     head_speed=vh[None], accel=sol.accel[None],
+                                     head_accel=ref_tr.head_accel[r:r + 1, :n].double(), valid=valid,
+                                     after=valid & (ref_tr.time[r:r + 1, :n] >= e.warmup_seconds), dt=dt,
+                                     settle=e.settle_seconds)
+                vals.append(sol.jerk), braked.append(sol.braked)
+                lows.append(float(m["min_gap_after"])), highs.append(float(m["max_head_gap"]))
+                rmses.append(float(m["speed_rmse_steady"]))
             row[label] = vals
             preview_gaps.setdefault(name, {})[label] = [min(lows), max(highs), sum(braked), sum(rmses) / len(rmses)]
         results[name] = row
@@ -182,6 +187,11 @@ def main(argv=None) -> dict:
     return results
 
 
+def preview_label(seconds: float) -> str:
+    """The column of the preview controller that sees ``seconds`` of the head's coming speeds."""
+    return f"preview {seconds:g} s: band"
+
+
 def plot_preview(results: dict, preview_gaps: dict, previews, path, *, s_band, tol: float = 0.5) -> None:
     """One panel per case: the preview controller's mean jerk against its preview (s), hollow where its gap
     left ``s_band`` by more than ``tol`` m after the warm-up, with IDM-as-CAV's, the policy's without its layer
@@ -198,7 +208,7 @@ def plot_preview(results: dict, preview_gaps: dict, previews, path, *, s_band, t
     for ax in axes.flat[len(results):]:
         ax.set_visible(False)
     for ax, (name, row) in zip(axes.flat, results.items()):
-        labels = [f"preview {s_:g} s: band" for s_ in previews]
+        labels = [preview_label(s_) for s_ in previews]
         ys = [mean(row[k]) for k in labels]
         inside = [low >= s_band[0] - tol and high <= s_band[1] + tol for low, high, *_ in
                   (preview_gaps[name][k] for k in labels)]

@@ -39,13 +39,15 @@ import torch
 @dataclass
 class OracleResult:
     """``jerk``: the optimum (m/s^3, the report's mean |jerk|); ``accel``, ``speed``, ``gap``: the
-    optimal sequence (``[N]`` tensors, post-step values as in a trace); ``status``: HiGHS's message."""
+    optimal sequence (``[N]`` tensors, post-step values as in a trace); ``status``: HiGHS's message;
+    ``braked``: of :func:`preview_least_jerk`, the steps braked without a plan (0 otherwise)."""
 
     jerk: float
     accel: torch.Tensor
     speed: torch.Tensor
     gap: torch.Tensor
     status: str
+    braked: int = 0
 
 
 def _check(name: str, ok: bool, allowed: str, got) -> None:
@@ -61,7 +63,7 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                track_weight: float | None = None) -> OracleResult:
     """Solve the episode's least-jerk program (module docstring).
 
-    Three options serve a plan over a window of an episode (:func:`preview_least_jerk`): ``a_prev`` (m/s^2),
+    Four options serve a plan over a window of an episode (:func:`preview_least_jerk`): ``a_prev`` (m/s^2),
     the command before the first step, whose change to the first command then counts as well; ``end_speed``
     (m/s >= 0), the speed the last step must end at; ``band_weight`` (> 0), the band made soft: each metre
     outside ``[s_min, s_max]`` on a step costs that much command change (m/s^2), so a plan exists whatever the
@@ -149,42 +151,42 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
         bounds[2 * N - 1] = (end_speed, end_speed)
     cost = np.zeros(4 * N - 1 + S)
     cost[3 * N:4 * N - 1] = 1.0  # the total variation of the command; the mean |jerk| is it / ((N - 1) dt)
-    extra = []  # further columns after e: u_0 >= |a_0 - a_prev|, then the band's slack (N) when soft
-    if a_prev is not None:
-        first = sp.csr_matrix(([1.0], ([0], [0])), shape=(1, N))
-        rows = [sp.hstack([r, Z(r.shape[0], 1)]) for r in rows]
-        rows += [sp.hstack([first, Z(1, 3 * N - 1 + S), -sp.identity(1)]),
-                 sp.hstack([-first, Z(1, 3 * N - 1 + S), -sp.identity(1)])]
-        b_ub += [np.array([a_prev]), np.array([-a_prev])]
-        extra.append((1, 1.0, (0.0, None)))
-    if band_weight is not None:
-        width = sum(n for n, _, _ in extra)
-        band = bounds[2 * N:3 * N]
-        lower = np.array([b[0] for b in band])
-        upper = np.array([np.inf if b[1] is None else b[1] for b in band])
+    # priced variables after e, one block per option: (size, price, [(rows over the columns above, rows over
+    # the block, rhs)]); the rows above are padded once, after every block is known
+    n_base = 4 * N - 1 + S
+    blocks = []
+    if a_prev is not None:  # u_0 >= |a_0 - a_prev|
+        first = sp.csr_matrix(([1.0], ([0], [0])), shape=(1, n_base))
+        one = sp.identity(1, format="csr")
+        blocks.append((1, 1.0, [(first, -one, [a_prev]), (-first, -one, [-a_prev])]))
+    if band_weight is not None:  # sigma_t >= the gap's distance outside the band
+        lower = np.array([b[0] for b in bounds[2 * N:3 * N]])
+        upper = np.array([np.inf if b[1] is None else b[1] for b in bounds[2 * N:3 * N]])
         bounds[2 * N:3 * N] = [(gap_floor, None)] * N  # only the floor stays hard; the band moves to rows with slack
-        cols = 4 * N - 1 + S + width
-        pick_g = sp.hstack([Z(N, 2 * N), eye, Z(N, cols - 3 * N)])
-        rows = [sp.hstack([r, Z(r.shape[0], N)]) for r in rows]
-        has_lo, has_hi = np.flatnonzero(lower > gap_floor), np.flatnonzero(np.isfinite(upper))
-        for idx, sign, edge in ((has_lo, -1.0, -lower), (has_hi, 1.0, upper)):
+        pick_g = sp.hstack([Z(N, 2 * N), eye, Z(N, n_base - 3 * N)]).tocsr()
+        groups = []
+        for idx, sign, edge in ((np.flatnonzero(lower > gap_floor), -1.0, -lower),
+                                (np.flatnonzero(np.isfinite(upper)), 1.0, upper)):
             if len(idx):  # sign g_t - sigma_t <= sign edge_t
                 sel = sp.csr_matrix((np.ones(len(idx)), (np.arange(len(idx)), idx)), shape=(len(idx), N))
-                rows.append(sp.hstack([sign * sel @ pick_g, -sel]))
-                b_ub.append(edge[idx])
-        extra.append((N, float(band_weight), (0.0, None)))
-    if track_weight is not None:  # e_t >= +-(v_t - v_head_t) on every step
-        cols = 4 * N - 1 + S + sum(n for n, _, _ in extra)
-        pick_v = sp.hstack([Z(N, N), eye, Z(N, cols - 2 * N)])
-        rows = [sp.hstack([r, Z(r.shape[0], N)]) for r in rows]
-        rows += [sp.hstack([pick_v, -eye]), sp.hstack([-pick_v, -eye])]
-        b_ub += [vh, -vh]
-        extra.append((N, float(track_weight), (0.0, None)))
-    for n, c, bound in extra:
-        cost = np.concatenate([cost, np.full(n, c)])
-        bounds += [bound] * n
-    width = sum(n for n, _, _ in extra)
-    a_eq = sp.hstack([a_eq, Z(a_eq.shape[0], width)]).tocsr() if width else a_eq
+                groups.append((sign * pick_g[idx], -sel, edge[idx]))
+        blocks.append((N, float(band_weight), groups))
+    if track_weight is not None:  # e_t >= |v_t - v_head_t| on every step
+        pick_v = sp.hstack([Z(N, N), eye, Z(N, n_base - 2 * N)]).tocsr()
+        blocks.append((N, float(track_weight), [(pick_v, -eye, vh), (-pick_v, -eye, -vh)]))
+    width = sum(n for n, _, _ in blocks)
+    if width:
+        rows = [sp.hstack([r, Z(r.shape[0], width)]) for r in rows]
+        a_eq = sp.hstack([a_eq, Z(a_eq.shape[0], width)]).tocsr()
+        offset = 0
+        for n, price, groups in blocks:
+            for above, own, rhs in groups:
+                k = own.shape[0]
+                rows.append(sp.hstack([above, Z(k, offset), own, Z(k, width - offset - n)]))
+                b_ub.append(np.asarray(rhs, dtype=float))
+            cost = np.concatenate([cost, np.full(n, price)])
+            bounds += [(0.0, None)] * n
+            offset += n
     problem = dict(A_ub=sp.vstack(rows).tocsr(), b_ub=np.concatenate(b_ub), A_eq=a_eq, b_eq=b_eq, bounds=bounds)
     # the interior-point solver is fast here (1-2 s); its crossover to a vertex stalled on a few episodes
     # (a near-degenerate optimum), where the dual simplex finishes instead
@@ -197,7 +199,7 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     if res.status != 0:
         raise RuntimeError(f"least_jerk: HiGHS did not finish within time_limit={time_limit} s ({res.message})")
     x = torch.as_tensor(res.x)
-    tv = float(np.abs(np.diff(res.x[:N])).sum())  # the objective less the first change and the band's price
+    tv = float(np.abs(np.diff(res.x[:N])).sum())  # the objective less the priced blocks (first change, band, error)
     return OracleResult(jerk=tv / ((N - 1) * dt), accel=x[:N], speed=x[N:2 * N], gap=x[2 * N:3 * N],
                         status=res.message)
 
@@ -213,8 +215,8 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
     speed, gap and command (``a_prev``): the head's speeds known for the first ``preview`` seconds (its plan,
     as a connected head could broadcast it) and held at the last known one after that (``preview`` 0: the
     head's present speed, all a follower that only measures it knows), the band soft (``band_weight``), the
-    speed error priced when ``track_weight`` is given, and the plan ending at that held speed. It drives the plan's commands until the next plan, behind the head's
-    true speeds (the env's ``"euler"`` update). ``preview`` from 0 up to the episode's length spans the causal
+    speed error priced when ``track_weight`` is given, and the plan ending at that held speed. It drives the
+    plan's commands until the next plan, behind the head's true speeds (the env's ``"euler"`` update). ``preview`` from 0 up to the episode's length spans the causal
     controller that only measures the head and the clairvoyant sequence of :func:`least_jerk`, so the jerk
     it reaches in the band as ``preview`` grows shows how much of the head's future a jerk bar asks for.
 
@@ -227,7 +229,8 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
 
     ``head_speed`` (``[N]``): the head's speed after each step; ``head_start``: before the first (default
     ``head_speed[0]``). Returns the driven sequence (``jerk``: its mean |jerk| over steps 1..N-1, as the
-    report counts it; ``status``: the count of plans and of steps braked without one).
+    report counts it; ``status``: the count of plans and of steps braked without one, the latter also as
+    ``braked``).
     """
     from transforms.safety_layer import safe_accel_upper
 
@@ -272,7 +275,7 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
     acc = torch.tensor(accel, dtype=torch.float64)
     return OracleResult(jerk=float(acc.diff().abs().sum()) / ((N - 1) * dt), accel=acc,
                         speed=torch.tensor(speed, dtype=torch.float64), gap=torch.tensor(gaps, dtype=torch.float64),
-                        status=f"{plans} plans, {braked} steps braked without one")
+                        status=f"{plans} plans, {braked} steps braked without one", braked=braked)
 
 
 def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, leader_brake: float,
