@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from mixed_traffic.evaluation.harness import abs_jerk
-from mixed_traffic.evaluation.oracle import least_jerk, least_jerk_of_trace, preview_least_jerk, steady_mask
+from mixed_traffic.evaluation.oracle import (
+    causal_least_jerk,
+    history_groups,
+    least_jerk,
+    least_jerk_of_trace,
+    preview_least_jerk,
+    steady_mask,
+)
 from mixed_traffic.physics import idm_accel, integrate
 
 DT = 0.1
@@ -258,3 +265,129 @@ def test_bad_preview_input_names_the_argument(kwargs, field):
     base = dict(preview=2.0, horizon=15.0, v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
     with pytest.raises(ValueError, match=field):
         preview_least_jerk(_ramp_head(30.0), **{**base, **kwargs})
+
+
+# ----------------------------------------------------------------------------- the causal bound over head futures
+def _futures(n_before=100, n_after=200, speeds=(10.0, 8.0, 13.0)):
+    """Heads at 10 m/s that, after ``n_before`` steps, keep it or step to 8 or 13 m/s (a tree of one decision)."""
+    return torch.stack([torch.cat([torch.full((n_before,), 10.0), torch.full((n_after,), v)]) for v in speeds]).double()
+
+
+CAUSAL_KW = dict(v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=12.0, s_max=30.0)
+
+
+def test_history_groups_split_heads_where_their_measured_speeds_first_differ():
+    heads = _futures(3, 2)
+    ids = history_groups(heads)
+    assert ids[:, :4].eq(0).all()  # step 3's command is chosen before its speeds are measured
+    assert len(set(ids[:, 4].tolist())) == 3
+
+
+def test_the_causal_bound_of_one_head_is_the_clairvoyant_optimum():
+    head = _futures()[2]
+    one = causal_least_jerk(head[None], **CAUSAL_KW)
+    twice = causal_least_jerk(torch.stack([head, head]), **CAUSAL_KW)
+    alone = least_jerk(head, **CAUSAL_KW)
+    assert one.jerk == pytest.approx(alone.jerk, abs=1e-7)
+    assert twice.jerk == pytest.approx(alone.jerk, abs=1e-7)
+
+
+def test_not_knowing_the_step_costs_jerk_and_commands_agree_until_the_heads_differ():
+    heads = _futures()
+    r = causal_least_jerk(heads, **CAUSAL_KW)
+    clairvoyant = sum(least_jerk(h, **CAUSAL_KW).jerk for h in heads) / 3
+    # knowing which step comes, the CAV eases into it before it starts (no command change at all here)
+    assert clairvoyant < 1e-6 and r.jerk > 0.005
+    for i in (1, 2):
+        assert torch.allclose(r.accel[0, :101], r.accel[i, :101], atol=1e-7)
+        assert not torch.allclose(r.accel[0, 101:], r.accel[i, 101:], atol=1e-3)
+    assert float(r.gap.min()) >= 12.0 - 1e-6 and float(r.gap.max()) <= 30.0 + 1e-6
+    # weights move the optimum toward the likely futures: a rare up-step buys a smaller answer to the others
+    rare = causal_least_jerk(heads, weights=[0.45, 0.45, 0.1], **CAUSAL_KW)
+    assert float(rare.per_head[2]) > float(r.per_head[2])
+
+
+def test_no_causal_controller_that_keeps_the_band_on_every_head_has_less_jerk():
+    # a proportional follower measures the head only (its command at step t uses the head's speed after t - 1),
+    # so it is causal; it keeps the band on all three heads, so its mean jerk bounds the program's optimum
+    heads = _futures()
+    v = torch.full((3,), 10.0, dtype=torch.float64)
+    gap, head_prev, a_prev = torch.full((3,), 20.0, dtype=torch.float64), heads[:, 0].clone(), torch.zeros(3)
+    changes, gaps = [], []
+    for t in range(heads.shape[1]):
+        a = (0.6 * (head_prev - v) + 0.05 * (gap - 20.0)).clamp(-3.0, 3.0)
+        v_next = (v + a * DT).clamp_min(0.0)
+        gap = gap + (heads[:, t] - v_next) * DT
+        changes.append((a - a_prev).abs()) if t else None
+        v, a_prev, head_prev = v_next, a, heads[:, t]
+        gaps.append(gap)
+    gaps = torch.stack(gaps, 1)
+    assert float(gaps.min()) >= 12.0 and float(gaps.max()) <= 30.0
+    follower = float(torch.stack(changes, 1).sum(1).mean()) / ((heads.shape[1] - 1) * DT)
+    assert causal_least_jerk(heads, **CAUSAL_KW).jerk <= follower
+
+
+def test_counted_window_and_a_settled_end():
+    heads = _futures()
+    ends = heads[:, -1]
+    settled = causal_least_jerk(heads, end_speeds=ends, a_prev=0.0, **CAUSAL_KW)
+    assert torch.allclose(settled.speed[:, -1], ends, atol=1e-6)
+    # the step 0 change from a_prev counts: per_head is the mean over every step, with the command before them
+    change = torch.cat([torch.zeros(3, 1, dtype=torch.float64), settled.accel], 1).diff(dim=1).abs()
+    assert torch.allclose(settled.per_head, change.sum(1) / (heads.shape[1] * DT), atol=1e-9)
+    before = causal_least_jerk(heads, count_to=100, **CAUSAL_KW)  # only the steady start counts: nothing to do
+    assert before.jerk == pytest.approx(0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(head_speeds=torch.ones(5)), "head_speeds"),
+    (dict(weights=[1.0, 1.0]), "weights"),
+    (dict(weights=[1.0, -1.0, 1.0]), "weights"),
+    (dict(count_from=299), "count_from"),
+    (dict(count_to=400), "count_to"),
+    (dict(end_speeds=[10.0]), "end_speeds"),
+    (dict(s_min=-1.0), "s_min"),
+])
+def test_bad_causal_input_names_the_argument(kwargs, field):
+    args = dict(head_speeds=_futures(), **CAUSAL_KW)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=field):
+        causal_least_jerk(**args)
+
+
+def test_heads_no_causal_controller_can_follow_in_the_band_are_reported():
+    # the head steps from 10 to 20 m/s with 2 m of room: only a CAV that knew could have closed in first
+    heads = _futures(50, 100, speeds=(10.0, 20.0))
+    with pytest.raises(ValueError, match="no causal command sequence"):
+        causal_least_jerk(heads, v_start=10.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=18.0, s_max=22.0,
+                          accel_bounds=(-1.0, 1.0))
+
+
+def test_the_step_tree_drives_the_head_as_the_ring_does(benchmark_script):
+    tree = benchmark_script("ring_causal_bound").step_tree
+    heads, w, choices = tree(speeds=[20.0, 27.0], v0=24.0, epoch=5.0, depth=2, p_hold=0.5, tail=5.0, dt=DT,
+                             head_bounds=(-3.0, 2.0))
+    assert heads.shape == (9, 200) and float(w.sum()) == pytest.approx(1.0) and float(w[0]) == pytest.approx(0.25)
+    up = choices.index([27.0, None])
+    # the target of time 5 s drives step 49; the head ramps at its 2 m/s^2 bound to 27 m/s and holds it
+    assert torch.all(heads[up, :49] == 24.0) and float(heads[up, 49]) == pytest.approx(24.2)
+    assert torch.allclose(heads[up, 63:], torch.tensor(27.0, dtype=torch.float64)) and float(heads[up, 62]) < 26.9
+    down = choices.index([20.0, None])
+    assert float(heads[down, 49]) == pytest.approx(23.7)  # braking at its 3 m/s^2 bound
+    rel, _, steps = tree(speeds=[-2.0, 2.0], v0=24.0, epoch=5.0, depth=2, p_hold=0.0, tail=5.0, dt=DT,
+                         head_bounds=(-3.0, 2.0), relative=True)
+    assert len(steps) == 4 and float(rel[steps.index([2.0, 2.0]), -1]) == pytest.approx(28.0)
+
+
+def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):
+    mod = benchmark_script("ring_causal_bound")
+    res = mod.main(["--depth", "1", "--epoch", "5", "--tail", "10", "--speeds", "22", "26", "--out", str(tmp_path)])
+    rows = res["rows"]
+    assert rows["clairvoyant"]["jerk"] <= rows["causal bound"]["jerk"]
+    lo, hi = rows["causal bound"]["gaps"]
+    assert 5.0 - 1e-6 <= lo and hi <= 40.0 + 1e-6
+    assert all(rows[k]["collisions"] == 0 for k in mod.CLASSICAL)
+    text = (tmp_path / "causal_bound.md").read_text()
+    assert text.startswith("3 futures of 20 s") and "solved in" in text.splitlines()[0] and text.count("|") > 20
+    with pytest.raises(SystemExit, match="--gap"):
+        mod.main(["--gap", "50", "--out", str(tmp_path)])

@@ -88,8 +88,40 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     (no command sequence keeps the bars on this episode); ``RuntimeError`` when HiGHS has not
     finished within ``time_limit`` seconds.
     """
+    _check("time_limit", time_limit > 0, "> 0 (seconds)", time_limit)
+    prog = _program(head_speed, v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
+                    s_max=s_max, accel_bounds=accel_bounds, gap_floor=gap_floor, steady=steady, rmse=rmse,
+                    norm=norm, stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=end_speed,
+                    band_weight=band_weight, track_weight=track_weight)
+    x = _solve(prog, time_limit=time_limit, who="least_jerk",
+               infeasible="no command sequence keeps the bars on this episode")
+    N = prog.n
+    tv = float(np.abs(np.diff(x[:N])).sum())  # the objective less the priced blocks (first change, band, error)
+    xt = torch.as_tensor(x)
+    return OracleResult(jerk=tv / ((N - 1) * dt), accel=xt[:N], speed=xt[N:2 * N], gap=xt[2 * N:3 * N],
+                        status=prog.status)
+
+
+@dataclass
+class _Program:
+    """A linear program of :func:`least_jerk` over one head trace: ``min cost x`` s.t. ``A_ub x <= b_ub``,
+    ``A_eq x = b_eq``, ``bounds``; its columns start with ``a`` (``n``), ``v`` (``n``), ``g`` (``n``) and
+    ``u`` (``n - 1``, ``u_t >= |a_{t+1} - a_t|``). ``status`` is filled in by :func:`_solve`."""
+
+    cost: np.ndarray
+    A_ub: object
+    b_ub: np.ndarray
+    A_eq: object
+    b_eq: np.ndarray
+    bounds: list
+    n: int
+    status: str = ""
+
+
+def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_bounds, gap_floor, steady, rmse,
+             norm, stop_gap, leader_brake, a_prev, end_speed, band_weight, track_weight) -> _Program:
+    """:func:`least_jerk`'s program, its arguments validated (each error names the argument)."""
     from scipy import sparse as sp
-    from scipy.optimize import linprog
 
     vh = torch.as_tensor(head_speed, dtype=torch.float64).flatten().numpy()
     N = vh.shape[0]
@@ -102,7 +134,6 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     _check("s_min", 0 <= s_min, ">= 0", s_min)
     _check("s_max", s_max is None or s_max > s_min, "None or > s_min", s_max)
     _check("norm", norm in ("l1", "linf"), "'l1' or 'linf'", norm)
-    _check("time_limit", time_limit > 0, "> 0 (seconds)", time_limit)
     _check("a_prev", a_prev is None or bool(np.isfinite(a_prev)), "None or finite", a_prev)
     _check("end_speed", end_speed is None or end_speed >= 0, "None or >= 0 (m/s)", end_speed)
     _check("band_weight", band_weight is None or band_weight > 0, "None or > 0", band_weight)
@@ -187,21 +218,28 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
             cost = np.concatenate([cost, np.full(n, price)])
             bounds += [(0.0, None)] * n
             offset += n
-    problem = dict(A_ub=sp.vstack(rows).tocsr(), b_ub=np.concatenate(b_ub), A_eq=a_eq, b_eq=b_eq, bounds=bounds)
+    return _Program(cost=cost, A_ub=sp.vstack(rows).tocsr(), b_ub=np.concatenate(b_ub), A_eq=a_eq, b_eq=b_eq,
+                    bounds=bounds, n=N)
+
+
+def _solve(prog: _Program, *, time_limit: float, who: str, infeasible: str) -> np.ndarray:
+    """The optimum of ``prog`` (``prog.status`` set to HiGHS's message); ``ValueError`` naming ``who`` when it is
+    infeasible, ``RuntimeError`` when HiGHS has not finished within ``time_limit`` seconds."""
+    from scipy.optimize import linprog
+
+    problem = dict(A_ub=prog.A_ub, b_ub=prog.b_ub, A_eq=prog.A_eq, b_eq=prog.b_eq, bounds=prog.bounds)
     # the interior-point solver is fast here (1-2 s); its crossover to a vertex stalled on a few episodes
     # (a near-degenerate optimum), where the dual simplex finishes instead
     for method, limit in (("highs-ipm", time_limit / 3), ("highs-ds", time_limit)):
-        res = linprog(cost, method=method, options={"time_limit": limit}, **problem)
+        res = linprog(prog.cost, method=method, options={"time_limit": limit}, **problem)
         if res.status != 1:  # 1: time or iteration limit
             break
     if res.status == 2:
-        raise ValueError(f"least_jerk: no command sequence keeps the bars on this episode ({res.message})")
+        raise ValueError(f"{who}: {infeasible} ({res.message})")
     if res.status != 0:
-        raise RuntimeError(f"least_jerk: HiGHS did not finish within time_limit={time_limit} s ({res.message})")
-    x = torch.as_tensor(res.x)
-    tv = float(np.abs(np.diff(res.x[:N])).sum())  # the objective less the priced blocks (first change, band, error)
-    return OracleResult(jerk=tv / ((N - 1) * dt), accel=x[:N], speed=x[N:2 * N], gap=x[2 * N:3 * N],
-                        status=res.message)
+        raise RuntimeError(f"{who}: HiGHS did not finish within time_limit={time_limit} s ({res.message})")
+    prog.status = res.message
+    return res.x
 
 
 def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: float, gap_start: float, dt: float,
@@ -278,6 +316,136 @@ def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: f
                         status=f"{plans} plans, {braked} steps braked without one", braked=braked)
 
 
+@dataclass
+class CausalResult:
+    """``jerk``: the optimum, the weighted mean over the heads of each one's mean |jerk| over the counted steps
+    (m/s^3); ``per_head``: that mean per head (``[L]``); ``accel``, ``speed``, ``gap``: the optimal sequences
+    (``[L, N]``); ``status``: HiGHS's message."""
+
+    jerk: float
+    per_head: torch.Tensor
+    accel: torch.Tensor
+    speed: torch.Tensor
+    gap: torch.Tensor
+    status: str
+
+
+def history_groups(head_speeds) -> torch.Tensor:
+    """``[L, N]`` ids: ``ids[i, t] == ids[j, t]`` when heads ``i`` and ``j`` had the same speeds after steps
+    ``0 .. t-1``, all a CAV that chooses step ``t``'s command from what it has measured can tell apart.
+
+    >>> import torch
+    >>> history_groups(torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 4.0], [1.0, 5.0, 5.0]])).tolist()
+    [[0, 0, 0], [0, 0, 0], [0, 0, 1]]
+    """
+    vh = torch.as_tensor(head_speeds, dtype=torch.float64)
+    L, N = vh.shape
+    ids = torch.zeros(L, N, dtype=torch.long)
+    for t in range(1, N):
+        pairs = torch.stack([ids[:, t - 1].double(), vh[:, t - 1]], 1)
+        ids[:, t] = torch.unique(pairs, dim=0, return_inverse=True)[1]
+    return ids
+
+
+def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: float, warmup: float, s_min: float,
+                      s_max: float | None, weights=None, count_from: int = 0, count_to: int | None = None,
+                      accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
+                      stop_gap: float | None = None, leader_brake: float | None = None, a_prev: float | None = None,
+                      end_speeds=None, time_limit: float = 600.0) -> CausalResult:
+    """The least jerk of any **causal** CAV over a set of head futures: a lower bound, where
+    :func:`least_jerk` (which knows the head's future) is not one, of what a controller that only measures
+    the head can reach.
+
+    The heads (``[L, N]``, each row one head's speeds after each step, all from the same start) stand for a
+    distribution over what the head may do (``weights``, default uniform). One command sequence per head,
+    each in :func:`least_jerk`'s bars (the band after ``warmup``, ``gap_floor``, the acceleration bounds,
+    optionally the stopping-safe set), with the constraint that makes them one controller: step ``t``'s
+    command is the same for heads whose speeds agree on steps ``0 .. t-1`` (:func:`history_groups`), since a
+    CAV cannot tell them apart when it chooses it. The objective is the weighted mean of each head's mean
+    |jerk| over steps ``count_from .. count_to - 1`` (default: to the last step; step 0 counts with ``a_prev``,
+    the command before it, as in :func:`least_jerk`). Steps outside are free but
+    keep the bars: a settling prefix before, and after, a tail that stops the plan from saving jerk by
+    leaving a speed step unanswered at the end. That tail, though, can answer it with any jerk; so a plan can
+    also be made to end settled, ``end_speeds`` (``[L]``, e.g. each head's last speed), and count every step.
+
+    Every causal controller that keeps these bars on all ``L`` heads has, averaged with ``weights`` over them,
+    at least this mean |jerk| over the counted steps, whatever else it observes (the CAV's own state follows
+    from its commands and the head's speeds). Heads built as a tree (the head's choice revealed step by step,
+    e.g. a speed step drawn from a few values every period) make the bound tight for that distribution;
+    heads that differ from the first step make it :func:`least_jerk`'s mean.
+
+    Raises ``ValueError`` naming the argument on bad input or when no causal controller keeps the bars on
+    every head; ``RuntimeError`` when HiGHS has not finished within ``time_limit`` seconds.
+
+        >>> import torch
+        >>> slow, fast = torch.full((300,), 10.0), torch.full((300,), 10.0)
+        >>> slow[100:], fast[100:] = 9.0, 13.0  # after 10 s the head steps down or up: the CAV cannot know which
+        >>> kw = dict(v_start=10.0, gap_start=20.0, dt=0.1, warmup=0.0, s_min=15.0, s_max=25.0)
+        >>> r = causal_least_jerk(torch.stack([slow, fast]), **kw)
+        >>> seen = [least_jerk(h, **kw).jerk for h in (slow, fast)]  # each knowing its own future
+        >>> round(r.jerk, 4), round(sum(seen) / 2, 4)  # not knowing the step costs jerk
+        (0.0242, 0.0013)
+        >>> torch.allclose(r.accel[0, :101], r.accel[1, :101])  # one command until the head's speeds differ
+        True
+    """
+    from scipy import sparse as sp
+
+    vh = torch.as_tensor(head_speeds, dtype=torch.float64)
+    if vh.ndim != 2 or vh.shape[0] < 1 or vh.shape[1] < 2:
+        raise ValueError(f"causal_least_jerk: head_speeds must be [L, N] with L >= 1, N >= 2, got {tuple(vh.shape)}")
+    L, N = vh.shape
+    w = torch.full((L,), 1.0 / L, dtype=torch.float64) if weights is None else torch.as_tensor(weights, dtype=torch.float64)
+    if w.shape != (L,) or not bool((w >= 0).all()) or not float(w.sum()) > 0:
+        raise ValueError(f"causal_least_jerk: weights must be {L} values >= 0 with a positive sum, got {w.tolist()}")
+    w = w / w.sum()
+    count_to = N if count_to is None else count_to
+    if not 0 <= count_from < count_to - 1 or count_to > N:
+        raise ValueError(f"causal_least_jerk: count_from and count_to must satisfy 0 <= count_from < count_to - 1, "
+                         f"count_to <= {N} (step indices), got {count_from} and {count_to}")
+    _check("time_limit", time_limit > 0, "> 0 (seconds)", time_limit)
+    ends = [None] * L if end_speeds is None else torch.as_tensor(end_speeds, dtype=torch.float64).flatten().tolist()
+    if len(ends) != L:
+        raise ValueError(f"causal_least_jerk: end_speeds must be None or {L} values (m/s >= 0), got {len(ends)}")
+    step = np.arange(1, N)  # u_t is the change into step t + 1
+    counted = (step >= count_from) & (step < count_to)
+    with_prev = a_prev is not None and count_from == 0  # the change from a_prev into step 0 counts too
+    n_counted = int(counted.sum()) + with_prev
+    progs = [_program(vh[i], v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min, s_max=s_max,
+                      accel_bounds=accel_bounds, gap_floor=gap_floor, steady=None, rmse=None, norm="l1",
+                      stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i], band_weight=None,
+                      track_weight=None) for i in range(L)]
+    width = len(progs[0].cost)
+    cost = np.concatenate([p.cost * np.r_[np.zeros(3 * N), counted, [1.0] * with_prev, np.zeros(width - 4 * N + 1 - with_prev)]
+                           * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
+    # one controller: a_t of every head equals a_t of the first head with the same history
+    ids = history_groups(vh).numpy()
+    rows, cols, vals = [], [], []
+    k = 0
+    for t in range(N):
+        leader = {}
+        for i in range(L):
+            j = leader.setdefault(ids[i, t], i)
+            if j != i:
+                rows += [k, k]
+                cols += [i * width + t, j * width + t]
+                vals += [1.0, -1.0]
+                k += 1
+    same = sp.csr_matrix((vals, (rows, cols)), shape=(k, L * width))
+    prog = _Program(cost=cost, A_ub=sp.block_diag([p.A_ub for p in progs], format="csr"),
+                    b_ub=np.concatenate([p.b_ub for p in progs]),
+                    A_eq=sp.vstack([sp.block_diag([p.A_eq for p in progs], format="csr"), same]).tocsr(),
+                    b_eq=np.concatenate([*(p.b_eq for p in progs), np.zeros(k)]),
+                    bounds=[b for p in progs for b in p.bounds], n=N)
+    x = _solve(prog, time_limit=time_limit, who="causal_least_jerk",
+               infeasible="no causal command sequence keeps the bars on every head")
+    x = torch.as_tensor(x).reshape(L, width)
+    accel = x[:, :N]
+    change = accel.diff(dim=1, prepend=accel[:, :1] if a_prev is None else torch.full((L, 1), float(a_prev))).abs()
+    per_head = (change * torch.as_tensor(np.r_[float(with_prev), counted])).sum(1) / (n_counted * dt)
+    return CausalResult(jerk=float((per_head * w).sum()), per_head=per_head, accel=accel, speed=x[:, N:2 * N],
+                        gap=x[:, 2 * N:3 * N], status=prog.status)
+
+
 def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, leader_brake: float,
                    window: float = 15.0):
     """``A x <= b`` over ``x = (a, v, g)`` (``[3N]``) for steps ``1..N-1``: the post-step speed ``v_t`` within
@@ -344,4 +512,4 @@ def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tens
     return steady_samples(trace.head_accel, trace.valid & (trace.time >= warmup), int(round(settle / dt)))
 
 
-__all__ = ["least_jerk", "least_jerk_of_trace", "preview_least_jerk", "start_of_trace", "steady_mask", "OracleResult"]
+__all__ = ["causal_least_jerk", "history_groups", "least_jerk", "least_jerk_of_trace", "preview_least_jerk", "start_of_trace", "steady_mask", "CausalResult", "OracleResult"]
