@@ -391,3 +391,26 @@ def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path
     assert text.startswith("3 futures of 20 s") and "solved in" in text.splitlines()[0] and text.count("|") > 20
     with pytest.raises(SystemExit, match="--gap"):
         mod.main(["--gap", "50", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--stop-gap"):
+        mod.main(["--stop-gap", "-1", "--out", str(tmp_path)])
+
+
+def test_the_jerk_oracle_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):
+    # a tiny trained ring policy; the script's columns on one 60-s held-out episode
+    from mixed_traffic.config import compose
+    from mixed_traffic.training import train
+
+    run = tmp_path / "run"
+    train(compose(["experiment=ring_ppo", "trainer.total_frames=32", "trainer.num_envs=8", "trainer.rollout_len=4",
+                   "trainer.epochs=1", "trainer.minibatch_size=16", "trainer.progress=false",
+                   "env.episode_seconds=1.0"]), out_dir=run)
+    mod = benchmark_script("ring_jerk_oracle")
+    res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "60", "--cases", "fast_steps",
+                    "--preview", "0", "5", "--out", str(tmp_path / "out")])
+    row = {k: v[0] for k, v in res["fast_steps"].items()}
+    band, l1, linf = (row[f"clairvoyant: band{x}"] for x in ("", " + rmse (l1)", " + rmse (linf)"))
+    assert 0.0 <= band <= l1 + 1e-9 <= linf + 2e-9  # each adds to the bars of the one before
+    assert band < row["IDM-as-CAV"]  # IDM-as-CAV keeps its own gaps, the band's floor is far below its jerk
+    assert {mod.preview_label(0), mod.preview_label(5)} <= set(row)
+    table = (tmp_path / "out" / "jerk_oracle.md").read_text()
+    assert table.count("\n") == 3 and "fast_steps" in table
