@@ -50,10 +50,12 @@ CLASSICAL = {"IDM-as-CAV": {}, "IDM_cav (s0 7, v0 40, b 2)": {"s0": 7.0, "v0": 4
 
 
 def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tail: float, dt: float,
-              head_bounds: tuple[float, float], prefix: float = 0.0, relative: bool = False):
+              head_bounds: tuple[float, float], prefix: float = 0.0, relative: bool = False, ramps: bool = False):
     """``(heads [L, N], weights [L], choices)``: the head's speeds after each step of every future (a
     ``prefix`` at ``v0`` first), each future's probability, and its choice at each decision (None: hold).
-    ``relative``: ``speeds`` are changes of the head's target speed, not target speeds."""
+    ``relative``: ``speeds`` are changes of the head's target speed, not target speeds. ``ramps``: they are
+    accelerations (m/s^2) the head holds until the next decision (a hold keeps the last one), and it holds
+    its speed after the last decision's epoch: smooth heads like a sine's, where steps are the other case."""
     import torch
 
     options = ([None] if p_hold > 0 else []) + list(speeds)  # a choice of probability 0 is no future
@@ -63,13 +65,21 @@ def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tai
     decide = {int(round((prefix + (k + 1) * epoch) / dt)): k for k in range(depth)}  # step index -> decision
     lo, hi = head_bounds
     heads = torch.zeros(len(futures), n, dtype=torch.float64)
+    end = int(round((prefix + (depth + 1) * epoch) / dt))  # ramps: the head holds its speed from here on
     for i, future in enumerate(futures):
         v = target = v0
+        accel = 0.0
         for t in range(n):
             k = decide.get(t + 1)  # the target of time (t + 1) dt drives step t, as in the env
             if k is not None and options[future[k]] is not None:
-                target = max(0.0, target + options[future[k]]) if relative else options[future[k]]
-            v = max(0.0, v + min(max((target - v) / dt, lo), hi) * dt)
+                if ramps:
+                    accel = options[future[k]]
+                else:
+                    target = max(0.0, target + options[future[k]]) if relative else options[future[k]]
+            if ramps:
+                v = max(0.0, v + min(max(accel if t + 1 < end else 0.0, lo), hi) * dt)
+            else:
+                v = max(0.0, v + min(max((target - v) / dt, lo), hi) * dt)
             heads[i, t] = v
     weights = torch.tensor([[share[c] for c in f] for f in futures], dtype=torch.float64).prod(1)
     return heads, weights, [[options[c] for c in f] for f in futures]
@@ -82,6 +92,9 @@ def main(argv=None) -> dict:
     p.add_argument("--relative", action="store_true",
                    help="--speeds are changes of the head's target speed (e.g. -2.667 2.667): the head's next step is "
                         "as likely up as down wherever it drives, so its speed tells the CAV nothing of it")
+    p.add_argument("--ramps", action="store_true",
+                   help="--speeds are accelerations (e.g. -0.6 0 0.6 m/s^2) the head holds until its next decision: "
+                        "smooth heads like sine_fast's (24 +- 4 m/s over 40 s: at most 0.63 m/s^2)")
     p.add_argument("--v0", type=float, default=24.0, help="the head's and the CAV's speed at the start (m/s)")
     p.add_argument("--gap", type=float, default=22.5, help="the CAV's gap at the start (m)")
     p.add_argument("--epoch", type=float, default=5.0, help="seconds between the head's decisions")
@@ -104,7 +117,7 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     for name, ok, allowed in (("--depth", a.depth >= 1, ">= 1"), ("--epoch", a.epoch > 0, "> 0 (s)"),
                               ("--tail", a.tail >= 0, ">= 0 (s)"), ("--p-hold", 0 <= a.p_hold < 1, "in [0, 1)"),
-                              ("--v0", a.v0 >= 0, ">= 0 (m/s)"), ("--speeds", a.relative or min(a.speeds) >= 0, ">= 0 (m/s)"),
+                              ("--v0", a.v0 >= 0, ">= 0 (m/s)"), ("--speeds", a.relative or a.ramps or min(a.speeds) >= 0, ">= 0 (m/s)"),
                 ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
                 ("--time-limit", a.time_limit > 0, "> 0 (s)")):
         if not ok:
@@ -125,10 +138,12 @@ def main(argv=None) -> dict:
     cfg = validate_config(compose([f"experiment={a.experiment}", *a.set]))
     sc = eval_scenario(cfg, cfg.eval.profiles[0])
     dt, s_min, s_max = sc.dt, float(cfg.eval.s_min), float(cfg.eval.s_max)
+    if a.relative and a.ramps:
+        raise SystemExit("--relative and --ramps: give one of them")
     if not s_min <= a.gap <= s_max:
         raise SystemExit(f"--gap = {a.gap} is invalid; allowed: in the band [{s_min}, {s_max}] m")
     tree = dict(speeds=a.speeds, v0=a.v0, epoch=a.epoch, depth=a.depth, p_hold=a.p_hold, tail=a.tail, dt=dt,
-                head_bounds=tuple(sc.head_accel_bounds), relative=a.relative)
+                head_bounds=tuple(sc.head_accel_bounds), relative=a.relative, ramps=a.ramps)
     heads, w, choices = step_tree(**tree)
     L, N = heads.shape
     kw = dict(v_start=a.v0, gap_start=a.gap, dt=dt, warmup=0.0, s_min=s_min, s_max=s_max,
@@ -171,7 +186,9 @@ def main(argv=None) -> dict:
                       "collisions": int((gap <= 0).any(1).sum())}
     ref = rows["IDM-as-CAV"]["jerk"]
     lines = [f"{L} futures of {N * dt:.0f} s: the head at {a.v0} m/s decides {a.depth} times, every {a.epoch} s, to keep "
-             f"its target (p = {a.p_hold:.3f}) or step {'by' if a.relative else 'to'} one of {a.speeds} m/s; "
+             f"its {'acceleration' if a.ramps else 'target'} (p = {a.p_hold:.3f}) or "
+             f"{'ramp at' if a.ramps else 'step by' if a.relative else 'step to'} one of {a.speeds} "
+             f"{'m/s^2' if a.ramps else 'm/s'}; "
              f"band [{s_min}, {s_max}] m{'' if a.stop_gap is None else f', stopping-safe at {a.stop_gap:g} m'}; "
              + ("controllers replayed only" if a.replay_only else f"solved in {solve_s:.0f} s ({bound.status})"), "",
              "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) |", "|---|---|---|---|"]

@@ -377,6 +377,11 @@ def test_the_step_tree_drives_the_head_as_the_ring_does(benchmark_script):
     rel, _, steps = tree(speeds=[-2.0, 2.0], v0=24.0, epoch=5.0, depth=2, p_hold=0.0, tail=5.0, dt=DT,
                          head_bounds=(-3.0, 2.0), relative=True)
     assert len(steps) == 4 and float(rel[steps.index([2.0, 2.0]), -1]) == pytest.approx(28.0)
+    ramp, _, accels = tree(speeds=[-0.5, 0.5], v0=24.0, epoch=5.0, depth=2, p_hold=0.0, tail=5.0, dt=DT,
+                           head_bounds=(-3.0, 2.0), ramps=True)
+    up_down = ramp[accels.index([0.5, -0.5])]  # +0.5 m/s^2 from 5 s, -0.5 from 10 s, its speed held from 15 s
+    assert float(up_down[98]) == pytest.approx(26.5) and float(up_down[148]) == pytest.approx(24.0)
+    assert torch.allclose(up_down[148:], torch.tensor(24.0, dtype=torch.float64))
 
 
 def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):
