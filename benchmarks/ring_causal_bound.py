@@ -50,9 +50,9 @@ CLASSICAL = {"IDM-as-CAV": {}, "IDM_cav (s0 7, v0 40, b 2)": {"s0": 7.0, "v0": 4
 
 
 def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tail: float, dt: float,
-              head_bounds: tuple[float, float], prefix: float = 0.0, relative: bool = False, ramps: bool = False):
-    """``(heads [L, N], weights [L], choices)``: the head's speeds after each step of every future (a
-    ``prefix`` at ``v0`` first), each future's probability, and its choice at each decision (None: hold).
+              head_bounds: tuple[float, float], relative: bool = False, ramps: bool = False):
+    """``(heads [L, N], weights [L], choices)``: the head's speeds after each step of every future, each
+    future's probability, and its choice at each decision (None: hold).
     ``relative``: ``speeds`` are changes of the head's target speed, not target speeds. ``ramps``: they are
     accelerations (m/s^2) the head holds until the next decision (a hold keeps the last one), and it holds
     its speed after the last decision's epoch: smooth heads like a sine's, where steps are the other case."""
@@ -61,11 +61,11 @@ def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tai
     options = ([None] if p_hold > 0 else []) + list(speeds)  # a choice of probability 0 is no future
     share = ([p_hold] if p_hold > 0 else []) + [(1.0 - p_hold) / len(speeds)] * len(speeds)
     futures = list(itertools.product(range(len(options)), repeat=depth))
-    n = int(round((prefix + (depth + 1) * epoch + tail) / dt))
-    decide = {int(round((prefix + (k + 1) * epoch) / dt)): k for k in range(depth)}  # step index -> decision
+    n = int(round(((depth + 1) * epoch + tail) / dt))
+    decide = {int(round((k + 1) * epoch / dt)): k for k in range(depth)}  # step index -> decision
     lo, hi = head_bounds
     heads = torch.zeros(len(futures), n, dtype=torch.float64)
-    end = int(round((prefix + (depth + 1) * epoch) / dt))  # ramps: the head holds its speed from here on
+    end = int(round((depth + 1) * epoch / dt))  # ramps: the head holds its speed from here on
     for i, future in enumerate(futures):
         v = target = v0
         accel = 0.0
@@ -117,11 +117,14 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     for name, ok, allowed in (("--depth", a.depth >= 1, ">= 1"), ("--epoch", a.epoch > 0, "> 0 (s)"),
                               ("--tail", a.tail >= 0, ">= 0 (s)"), ("--p-hold", 0 <= a.p_hold < 1, "in [0, 1)"),
-                              ("--v0", a.v0 >= 0, ">= 0 (m/s)"), ("--speeds", a.relative or a.ramps or min(a.speeds) >= 0, ">= 0 (m/s)"),
-                ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
-                ("--time-limit", a.time_limit > 0, "> 0 (s)")):
+                              ("--v0", a.v0 >= 0, ">= 0 (m/s)"),
+                              ("--speeds", a.relative or a.ramps or min(a.speeds) >= 0, ">= 0 (m/s)"),
+                              ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
+                              ("--time-limit", a.time_limit > 0, "> 0 (s)")):
         if not ok:
             raise SystemExit(f"{name} is invalid; allowed: {allowed}")
+    if a.relative and a.ramps:
+        raise SystemExit("--relative and --ramps: give one of them")
 
     import torch
 
@@ -138,8 +141,6 @@ def main(argv=None) -> dict:
     cfg = validate_config(compose([f"experiment={a.experiment}", *a.set]))
     sc = eval_scenario(cfg, cfg.eval.profiles[0])
     dt, s_min, s_max = sc.dt, float(cfg.eval.s_min), float(cfg.eval.s_max)
-    if a.relative and a.ramps:
-        raise SystemExit("--relative and --ramps: give one of them")
     if not s_min <= a.gap <= s_max:
         raise SystemExit(f"--gap = {a.gap} is invalid; allowed: in the band [{s_min}, {s_max}] m")
     tree = dict(speeds=a.speeds, v0=a.v0, epoch=a.epoch, depth=a.depth, p_hold=a.p_hold, tail=a.tail, dt=dt,
@@ -163,12 +164,11 @@ def main(argv=None) -> dict:
     rows = {}
     if not a.replay_only:
         clair = torch.stack([least_jerk(h, end_speed=float(h[-1]), **kw).accel for h in heads])
-        rows = {"causal bound": {"jerk": bound.jerk, "per_future": mean_jerk(bound.accel, torch.zeros(L)),
+        rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
                                  "gaps": (float(bound.gap.min()), float(bound.gap.max()))},
                 "clairvoyant": {"jerk": float((mean_jerk(clair, torch.zeros(L)) * w).sum())}}
-    prefix = 60.0
-    hp, _, _ = step_tree(**tree, prefix=prefix)
-    P = int(round(prefix / dt))
+    P = int(round(60.0 / dt))  # the replayed controllers settle behind the head at v0 first
+    hp = torch.cat([heads.new_full((L, P), a.v0), heads], 1)
     zero = torch.zeros(L, hp.shape[1])
     trace = Trace(time=(torch.arange(hp.shape[1]) + 1).expand(L, -1) * dt, head_speed=hp.float(),
                   cav_speed=zero + a.v0, cav_accel=zero, head_accel=torch.cat([zero[:, :1], hp.diff(dim=1).float() / dt], 1),

@@ -93,20 +93,20 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                     s_max=s_max, accel_bounds=accel_bounds, gap_floor=gap_floor, steady=steady, rmse=rmse,
                     norm=norm, stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=end_speed,
                     band_weight=band_weight, track_weight=track_weight)
-    x = _solve(prog, time_limit=time_limit, who="least_jerk",
-               infeasible="no command sequence keeps the bars on this episode")
+    x, status = _solve(prog, time_limit=time_limit, who="least_jerk",
+                       infeasible="no command sequence keeps the bars on this episode")
     N = prog.n
     tv = float(np.abs(np.diff(x[:N])).sum())  # the objective less the priced blocks (first change, band, error)
     xt = torch.as_tensor(x)
     return OracleResult(jerk=tv / ((N - 1) * dt), accel=xt[:N], speed=xt[N:2 * N], gap=xt[2 * N:3 * N],
-                        status=prog.status)
+                        status=status)
 
 
 @dataclass
 class _Program:
     """A linear program of :func:`least_jerk` over one head trace: ``min cost x`` s.t. ``A_ub x <= b_ub``,
     ``A_eq x = b_eq``, ``bounds``; its columns start with ``a`` (``n``), ``v`` (``n``), ``g`` (``n``) and
-    ``u`` (``n - 1``, ``u_t >= |a_{t+1} - a_t|``). ``status`` is filled in by :func:`_solve`."""
+    ``u`` (``n - 1``, ``u_t >= |a_{t+1} - a_t|``)."""
 
     cost: np.ndarray
     A_ub: object
@@ -115,7 +115,6 @@ class _Program:
     b_eq: np.ndarray
     bounds: list
     n: int
-    status: str = ""
 
 
 def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_bounds, gap_floor, steady, rmse,
@@ -222,9 +221,9 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
                     bounds=bounds, n=N)
 
 
-def _solve(prog: _Program, *, time_limit: float, who: str, infeasible: str) -> np.ndarray:
-    """The optimum of ``prog`` (``prog.status`` set to HiGHS's message); ``ValueError`` naming ``who`` when it is
-    infeasible, ``RuntimeError`` when HiGHS has not finished within ``time_limit`` seconds."""
+def _solve(prog: _Program, *, time_limit: float, who: str, infeasible: str) -> tuple[np.ndarray, str]:
+    """The optimum of ``prog`` and HiGHS's message; ``ValueError`` naming ``who`` when it is infeasible,
+    ``RuntimeError`` when HiGHS has not finished within ``time_limit`` seconds."""
     from scipy.optimize import linprog
 
     problem = dict(A_ub=prog.A_ub, b_ub=prog.b_ub, A_eq=prog.A_eq, b_eq=prog.b_eq, bounds=prog.bounds)
@@ -238,8 +237,7 @@ def _solve(prog: _Program, *, time_limit: float, who: str, infeasible: str) -> n
         raise ValueError(f"{who}: {infeasible} ({res.message})")
     if res.status != 0:
         raise RuntimeError(f"{who}: HiGHS did not finish within time_limit={time_limit} s ({res.message})")
-    prog.status = res.message
-    return res.x
+    return res.x, res.message
 
 
 def preview_least_jerk(head_speed, *, preview: float, horizon: float, v_start: float, gap_start: float, dt: float,
@@ -415,8 +413,9 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                       stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i], band_weight=None,
                       track_weight=None) for i in range(L)]
     width = len(progs[0].cost)
-    cost = np.concatenate([p.cost * np.r_[np.zeros(3 * N), counted, [1.0] * with_prev, np.zeros(width - 4 * N + 1 - with_prev)]
-                           * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
+    # the counted changes: u (after a, v, g) and, with a_prev, the first priced column after it
+    mask = np.r_[np.zeros(3 * N), counted, [1.0] * with_prev, np.zeros(width - 4 * N + 1 - with_prev)]
+    cost = np.concatenate([p.cost * mask * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
     # one controller: a_t of every head equals a_t of the first head with the same history
     ids = history_groups(vh).numpy()
     rows, cols, vals = [], [], []
@@ -436,14 +435,14 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                     A_eq=sp.vstack([sp.block_diag([p.A_eq for p in progs], format="csr"), same]).tocsr(),
                     b_eq=np.concatenate([*(p.b_eq for p in progs), np.zeros(k)]),
                     bounds=[b for p in progs for b in p.bounds], n=N)
-    x = _solve(prog, time_limit=time_limit, who="causal_least_jerk",
-               infeasible="no causal command sequence keeps the bars on every head")
+    x, status = _solve(prog, time_limit=time_limit, who="causal_least_jerk",
+                       infeasible="no causal command sequence keeps the bars on every head")
     x = torch.as_tensor(x).reshape(L, width)
     accel = x[:, :N]
     change = accel.diff(dim=1, prepend=accel[:, :1] if a_prev is None else torch.full((L, 1), float(a_prev))).abs()
     per_head = (change * torch.as_tensor(np.r_[float(with_prev), counted])).sum(1) / (n_counted * dt)
     return CausalResult(jerk=float((per_head * w).sum()), per_head=per_head, accel=accel, speed=x[:, N:2 * N],
-                        gap=x[:, 2 * N:3 * N], status=prog.status)
+                        gap=x[:, 2 * N:3 * N], status=status)
 
 
 def _stopping_rows(vh: np.ndarray, *, dt: float, stop_gap: float, brake: float, leader_brake: float,
