@@ -23,6 +23,15 @@ after a 60-s settling prefix at ``--v0`` that is not counted: IDM-as-CAV (the je
 classical controller (IDM_cav: ``s0`` 7, ``v0`` 40, ``b`` 2) and the ``--experiment``'s classical base, which
 is the policy above 20 m/s (its learned residual is faded out there).
 
+``--stops`` builds a head that stops and drives off instead, as stop_and_go's: from a standstill it drives off
+``--depth`` times to one of ``--speeds``, holds it one of ``--holds`` seconds, brakes to a standstill and
+stands ``--stop`` s, all at ``--rate``; the CAV starts stopped ``--gap`` behind. ``--rmse R`` adds the steady
+speed bar: on each future's steady samples (the report's: the head's acceleration under 0.05 m/s^2 for the
+settle time; a last hold counts for ``--holds[0]`` s, as the others) the mean |speed error| at most R (a
+relaxation of the steady RMSE bar R, so still a bound), or with ``--rmse-norm linf`` every sample within R
+(stricter than the bar: the optimum is then a causal controller that meets it, on these futures). Every
+row also gives its steady RMSE.
+
 The tree is small (``options ** depth`` futures, the options being ``--speeds`` and a hold when ``--p-hold``
 > 0, of ``(depth + 1) epoch + tail`` seconds), so the bound is for this distribution and this horizon; a
 controller that must keep room for the next step of a long episode may pay more. The program grows quickly
@@ -32,6 +41,8 @@ with the tree (35,000 steps in all solve in about 90 s). Writes ``OUT/causal_bou
     python benchmarks/ring_causal_bound.py --out outputs/results/causal_bound/random_timing_d3       # ~4 min
     python benchmarks/ring_causal_bound.py --relative --speeds -4 -1.333 1.333 4 --epoch 15 --p-hold 0 \
         --depth 2 --stop-gap 5 --out outputs/results/causal_bound/relative_d2_stop5                 # ~2 min
+    python benchmarks/ring_causal_bound.py --stops --speeds 10 15 20 --depth 2 --gap 8 --stop-gap 5 \
+        --rmse 0.2 --rmse-norm linf --out outputs/results/causal_bound/stops_d2_stop5_rmse_linf      # ~1 min
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import sys
 import time
@@ -85,6 +97,42 @@ def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tai
     return heads, weights, [[options[c] for c in f] for f in futures]
 
 
+def stop_tree(*, speeds, depth: int, rate: float, holds, stop: float, tail: float, dt: float):
+    """``(heads [L, N], weights [L], choices)`` of a head that stops and drives off, as stop_and_go's: from a
+    standstill it drives off ``depth`` times at ``rate`` (m/s^2) to one of ``speeds``, holds it one of ``holds``
+    seconds (equal shares of each), brakes at ``rate`` to a standstill and stands ``stop`` s; the last drive-off
+    holds its speed ``holds[0] + tail`` s instead. The CAV learns the speed the head drives off to only when
+    the head stops accelerating short of the others, how long it holds only when it brakes, and the next
+    speed at the next drive-off. ``choices``: per future, ``(speed, seconds held)`` per drive-off."""
+    import torch
+
+    options = list(itertools.product([float(v) for v in speeds], [float(h) for h in holds]))
+    last_options = [(v, float(holds[0]) + tail) for v in speeds]  # nothing follows the last hold: one length
+    futures = [[*first, last] for first in itertools.product(options, repeat=depth - 1) for last in last_options]
+    plans = []
+    for future in futures:  # (target, seconds held after reaching it) per phase
+        phases = []
+        for k, (v, held) in enumerate(future):
+            phases += [(v, held)] + ([] if k == depth - 1 else [(0.0, stop)])
+        plans.append(phases)
+
+    def drive(phases) -> list[float]:
+        v, out = 0.0, []
+        for target, held in phases:
+            while v != target:  # at +-rate, the last step onto the target exactly; rounded, so that heads
+                # driving off to different speeds agree to the bit until the slower one stops (history_groups)
+                v = target if abs(target - v) <= rate * dt + 1e-9 else round(v + math.copysign(rate * dt, target - v), 9)
+                out.append(v)
+            out += [v] * int(round(held / dt))
+        return out
+
+    runs = [drive(ph) for ph in plans]
+    n = max(len(r) for r in runs)  # the shorter futures hold their last speed to the longest one's end
+    heads = torch.tensor([r + [r[-1]] * (n - len(r)) for r in runs], dtype=torch.float64)
+    weights = torch.full((len(futures),), 1.0 / len(futures), dtype=torch.float64)
+    return heads, weights, futures
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--speeds", type=float, nargs="+", default=[21.333, 24.0, 26.667],
@@ -95,6 +143,21 @@ def main(argv=None) -> dict:
     p.add_argument("--ramps", action="store_true",
                    help="--speeds are accelerations (e.g. -0.6 0 0.6 m/s^2) the head holds until its next decision: "
                         "smooth heads like sine_fast's (24 +- 4 m/s over 40 s: at most 0.63 m/s^2)")
+    p.add_argument("--stops", action="store_true",
+                   help="a head that stops and drives off (stop_and_go's): from a standstill it drives off --depth times "
+                        "to one of --speeds (m/s), holds it one of --holds s, brakes to a standstill and stands --stop s, ramps "
+                        "at --rate; --v0, --epoch and --p-hold do not apply (the CAV starts stopped, --gap behind)")
+    p.add_argument("--rate", type=float, default=2.0, help="with --stops: the head's ramps (m/s^2; stop_and_go: 2)")
+    p.add_argument("--holds", type=float, nargs="+", default=[10.0],
+                   help="with --stops: how long the head may hold each speed (s, equal shares; stop_and_go: 10)")
+    p.add_argument("--stop", type=float, default=6.0, help="with --stops: seconds of each standstill (stop_and_go: 6)")
+    p.add_argument("--rmse", type=float, default=None, metavar="R",
+                   help="the bound's and the clairvoyant CAV's mean |speed error| on each future's steady samples (the "
+                        "report's: the head's acceleration under 0.05 m/s^2 for the settle time) at most R m/s, implied by "
+                        "the steady-RMSE bar R (0.2), so the bound stays one for controllers that meet that bar too")
+    p.add_argument("--rmse-norm", choices=("l1", "linf"), default="l1",
+                   help="with --rmse: l1 (the mean |error|, the bound above) or linf (every steady sample within R m/s: "
+                        "stricter than the RMSE bar, so the optimum is then a causal controller that meets it, not a bound)")
     p.add_argument("--v0", type=float, default=24.0, help="the head's and the CAV's speed at the start (m/s)")
     p.add_argument("--gap", type=float, default=22.5, help="the CAV's gap at the start (m)")
     p.add_argument("--epoch", type=float, default=5.0, help="seconds between the head's decisions")
@@ -120,18 +183,24 @@ def main(argv=None) -> dict:
                               ("--v0", a.v0 >= 0, ">= 0 (m/s)"),
                               ("--speeds", a.relative or a.ramps or min(a.speeds) >= 0, ">= 0 (m/s)"),
                               ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
+                              ("--rate", a.rate > 0, "> 0 (m/s^2)"), ("--holds", min(a.holds) >= 0, ">= 0 (s)"),
+                              ("--stop", a.stop >= 0, ">= 0 (s)"), ("--rmse", a.rmse is None or a.rmse > 0, "> 0 (m/s)"),
                               ("--time-limit", a.time_limit > 0, "> 0 (s)")):
         if not ok:
             raise SystemExit(f"{name} is invalid; allowed: {allowed}")
-    if a.relative and a.ramps:
-        raise SystemExit("--relative and --ramps: give one of them")
+    if a.relative + a.ramps + a.stops > 1:
+        raise SystemExit("--relative, --ramps and --stops: give one of them")
+    if a.stops and min(a.speeds) <= 0:
+        raise SystemExit(f"--speeds {a.speeds} is invalid with --stops; allowed: speeds > 0 (m/s) to drive off to")
+    if a.stops:
+        a.v0 = 0.0
 
     import torch
 
     from mixed_traffic import make_env
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
-    from mixed_traffic.evaluation.harness import Trace, eval_scenario
+    from mixed_traffic.evaluation.harness import Trace, eval_scenario, steady_samples
     from mixed_traffic.evaluation.oracle import causal_least_jerk, least_jerk
     from mixed_traffic.evaluation.replay import replay
     from mixed_traffic.training.builders import residual_base
@@ -143,19 +212,41 @@ def main(argv=None) -> dict:
     dt, s_min, s_max = sc.dt, float(cfg.eval.s_min), float(cfg.eval.s_max)
     if not s_min <= a.gap <= s_max:
         raise SystemExit(f"--gap = {a.gap} is invalid; allowed: in the band [{s_min}, {s_max}] m")
-    tree = dict(speeds=a.speeds, v0=a.v0, epoch=a.epoch, depth=a.depth, p_hold=a.p_hold, tail=a.tail, dt=dt,
-                head_bounds=tuple(sc.head_accel_bounds), relative=a.relative, ramps=a.ramps)
-    heads, w, choices = step_tree(**tree)
+    if a.stops:
+        heads, w, choices = stop_tree(speeds=a.speeds, depth=a.depth, rate=a.rate, holds=a.holds, stop=a.stop,
+                                      tail=a.tail, dt=dt)
+    else:
+        heads, w, choices = step_tree(speeds=a.speeds, v0=a.v0, epoch=a.epoch, depth=a.depth, p_hold=a.p_hold,
+                                      tail=a.tail, dt=dt, head_bounds=tuple(sc.head_accel_bounds),
+                                      relative=a.relative, ramps=a.ramps)
     L, N = heads.shape
+    # each future's steady samples, as the report counts them (from the head's speed before the first step: v0)
+    head_accel = torch.cat([heads.new_full((L, 1), a.v0), heads], 1).diff(dim=1) / dt
+    steady = steady_samples(head_accel, torch.ones(L, N, dtype=torch.bool), int(round(cfg.eval.settle_seconds / dt)))
+    if a.stops:  # the last hold counts as long as the others (--holds[0] s), not through the tail that lets it settle
+        step = torch.arange(N)
+        reached = torch.where(head_accel != 0, step, torch.zeros_like(step)).max(1).values + 1
+        steady &= step[None] < (reached + int(round(a.holds[0] / dt)))[:, None]
+    bar = {} if a.rmse is None else {"steady": steady, "rmse": a.rmse, "norm": a.rmse_norm}
+
+    def steady_rmse(speed: torch.Tensor) -> torch.Tensor:
+        """Per future: the RMSE of the speed against the head's on its steady samples (nan: none)."""
+        return (((speed - heads) ** 2 * steady).sum(1) / steady.sum(1)).sqrt()
     kw = dict(v_start=a.v0, gap_start=a.gap, dt=dt, warmup=0.0, s_min=s_min, s_max=s_max,
               accel_bounds=tuple(sc.cav_accel_bounds), a_prev=0.0)
     if a.stop_gap is not None:
         kw.update(stop_gap=a.stop_gap, leader_brake=-float(sc.head_accel_bounds[0]))
     t0 = time.perf_counter()
+    stop_excess = None
     if not a.replay_only:
         print(f"{L} head futures of {N * dt:.0f} s ({L * N} steps): solving ...", flush=True)
-        bound = causal_least_jerk(heads, weights=w, end_speeds=heads[:, -1], time_limit=a.time_limit, **kw)
+        bound = causal_least_jerk(heads, weights=w, end_speeds=heads[:, -1], time_limit=a.time_limit, **bar, **kw)
     solve_s = time.perf_counter() - t0
+
+    def weighted(x: torch.Tensor, weights: torch.Tensor) -> float:
+        """The futures' weighted mean of ``x``, over those where it is defined (nan when none)."""
+        ok = ~x.isnan()
+        return float((x[ok] * weights[ok]).sum() / weights[ok].sum()) if bool(ok.any()) else float("nan")
 
     def mean_jerk(accel: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
         """Per future: mean |a_t - a_{t-1}| / dt over the N counted steps (the command before them: ``before``)."""
@@ -163,10 +254,20 @@ def main(argv=None) -> dict:
 
     rows = {}
     if not a.replay_only:
-        clair = torch.stack([least_jerk(h, end_speed=float(h[-1]), **kw).accel for h in heads])
+        clair = [least_jerk(h, end_speed=float(h[-1]), **({} if a.rmse is None else {**bar, "steady": steady[i]}), **kw)
+                 for i, h in enumerate(heads)]
+        if a.stop_gap is not None:  # the program keeps the stopping rule as linear pieces near the head's speed:
+            # check the optimum against the rule itself (safe_accel_upper), from the second step on
+            from transforms.safety_layer import safe_accel_upper
+
+            cap = safe_accel_upper(bound.gap[:, :-1], bound.speed[:, :-1], heads[:, :-1], s_min=a.stop_gap, dt=dt,
+                                   brake=-float(sc.cav_accel_bounds[0]), leader_brake=kw["leader_brake"])
+            stop_excess = float((bound.accel[:, 1:] - cap).max())
         rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
-                                 "gaps": (float(bound.gap.min()), float(bound.gap.max()))},
-                "clairvoyant": {"jerk": float((mean_jerk(clair, torch.zeros(L)) * w).sum())}}
+                                 "gaps": (float(bound.gap.min()), float(bound.gap.max())),
+                                 "rmse": weighted(steady_rmse(bound.speed), w), "rmse_per_future": steady_rmse(bound.speed)},
+                "clairvoyant": {"jerk": float((mean_jerk(torch.stack([c.accel for c in clair]), torch.zeros(L)) * w).sum()),
+                                "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w)}}
     P = int(round(60.0 / dt))  # the replayed controllers settle behind the head at v0 first
     hp = torch.cat([heads.new_full((L, P), a.v0), heads], 1)
     zero = torch.zeros(L, hp.shape[1])
@@ -183,25 +284,37 @@ def main(argv=None) -> dict:
         per = mean_jerk(m["accel"][:, P:], m["accel"][:, P - 1])
         gap = m["gap"][:, P:]
         rows[name] = {"jerk": float((per * w).sum()), "per_future": per, "gaps": (float(gap.min()), float(gap.max())),
-                      "collisions": int((gap <= 0).any(1).sum())}
+                      "collisions": int((gap <= 0).any(1).sum()), "rmse": weighted(steady_rmse(m["speed"][:, P:]), w),
+                      "rmse_per_future": steady_rmse(m["speed"][:, P:])}
     ref = rows["IDM-as-CAV"]["jerk"]
-    lines = [f"{L} futures of {N * dt:.0f} s: the head at {a.v0} m/s decides {a.depth} times, every {a.epoch} s, to keep "
-             f"its {'acceleration' if a.ramps else 'target'} (p = {a.p_hold:.3f}) or "
-             f"{'ramp at' if a.ramps else 'step by' if a.relative else 'step to'} one of {a.speeds} "
-             f"{'m/s^2' if a.ramps else 'm/s'}; "
-             f"band [{s_min}, {s_max}] m{'' if a.stop_gap is None else f', stopping-safe at {a.stop_gap:g} m'}; "
+    checked = ("" if stop_excess is None else
+               f" (the bound's largest command above the rule's own cap: {stop_excess:.1e} m/s^2)")
+    if a.stops:
+        head = (f"from a standstill the head drives off {a.depth} time{'s' if a.depth > 1 else ''} at {a.rate} m/s^2 to one of {a.speeds} m/s, "
+                f"holds it {' or '.join(f'{h:g}' for h in a.holds)} s and stops for {a.stop} s")
+    else:
+        head = (f"the head at {a.v0} m/s decides {a.depth} times, every {a.epoch} s, to keep "
+                f"its {'acceleration' if a.ramps else 'target'} (p = {a.p_hold:.3f}) or "
+                f"{'ramp at' if a.ramps else 'step by' if a.relative else 'step to'} one of {a.speeds} "
+                f"{'m/s^2' if a.ramps else 'm/s'}")
+    lines = [f"{L} futures of {N * dt:.0f} s: {head}; band [{s_min}, {s_max}] m"
+             f"{'' if a.stop_gap is None else f', stopping-safe at {a.stop_gap:g} m'}"
+             f"{checked}"
+             f"{'' if a.rmse is None else f', speed error on steady samples ({a.rmse_norm}) <= {a.rmse:g} m/s'}; "
              + ("controllers replayed only" if a.replay_only else f"solved in {solve_s:.0f} s ({bound.status})"), "",
-             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) |", "|---|---|---|---|"]
+             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) | steady RMSE (m/s) |",
+             "|---|---|---|---|---|"]
     for name, r in rows.items():
         g = r.get("gaps")
         lines.append(f"| {name} | {r['jerk']:.4f} | {100 * (r['jerk'] / ref - 1):+.1f} % | "
-                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} |")
+                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} | {r['rmse']:.3f} |")
     md = "\n".join(lines)
     print(md)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "causal_bound.md").write_text(md + "\n")
-    result = {"args": vars(a), "solve_s": solve_s, "status": None if a.replay_only else bound.status, "choices": choices,
+    result = {"args": vars(a), "solve_s": solve_s, "status": None if a.replay_only else bound.status,
+              "stop_rule_excess": stop_excess, "choices": choices,
               "weights": w.tolist(), "rows": {k: {kk: (vv.tolist() if isinstance(vv, torch.Tensor) else vv)
                                                   for kk, vv in r.items()} for k, r in rows.items()}}
     (out / "causal_bound.json").write_text(json.dumps(result, indent=1))
@@ -209,6 +322,13 @@ def main(argv=None) -> dict:
         plot(a.plot, heads, bound, choices, dt, "the least-jerk causal CAV on a tree of head futures"
              + ("" if a.stop_gap is None else f", stopping-safe at {a.stop_gap:g} m"))
     return result
+
+
+def choice_label(choice) -> str:
+    """A head's decision as the plot's legend names it: a hold, a value, or (--stops) a speed and how long held."""
+    if choice is None:
+        return "hold"
+    return f"{choice[0]:g} m/s, {choice[1]:g} s" if isinstance(choice, (tuple, list)) else f"{choice:g}"
 
 
 def plot(path: str, heads, bound, choices, dt: float, title: str) -> None:
@@ -229,7 +349,7 @@ def plot(path: str, heads, bound, choices, dt: float, title: str) -> None:
         line, = ax[0].plot(t, heads[i], "--", lw=0.8)
         ax[0].plot(t, bound.speed[i], lw=1.3, color=line.get_color())
         ax[1].plot(t, bound.accel[i], color=line.get_color())
-        ax[2].plot(t, bound.gap[i], color=line.get_color(), label=" → ".join("hold" if x is None else f"{x:g}" for x in choices[i]))
+        ax[2].plot(t, bound.gap[i], color=line.get_color(), label=" → ".join(map(choice_label, choices[i])))
     ax[0].set_ylabel("speed (m/s)\nhead dashed")
     ax[1].set_ylabel("command (m/s²)")
     ax[2].set_ylabel("gap (m)")

@@ -355,6 +355,27 @@ def test_bad_causal_input_names_the_argument(kwargs, field):
         causal_least_jerk(**args)
 
 
+def test_the_speed_bar_on_steady_samples_is_kept_on_every_head():
+    # the band-only optimum lets the speed drift off the head's to save jerk; the bar forbids it where it counts
+    heads = _futures()
+    steady = torch.zeros_like(heads, dtype=torch.bool)
+    steady[:, 250:] = True  # the last 5 s of each future
+    free = causal_least_jerk(heads, **CAUSAL_KW)
+    err = lambda r: ((r.speed - heads).abs() * steady).sum(1) / steady.sum(1)  # noqa: E731
+    assert float(err(free).max()) > 0.3
+    l1 = causal_least_jerk(heads, steady=steady, rmse=0.1, **CAUSAL_KW)
+    assert float(err(l1).max()) <= 0.1 + 1e-6 and l1.jerk >= free.jerk - 1e-9
+    linf = causal_least_jerk(heads, steady=steady, rmse=0.1, norm="linf", **CAUSAL_KW)
+    assert float(((linf.speed - heads).abs() * steady).max()) <= 0.1 + 1e-6 and linf.jerk >= l1.jerk - 1e-9
+    # one head with the bar is least_jerk's program with the same bar
+    alone = least_jerk(heads[2], steady=steady[2], rmse=0.1, **CAUSAL_KW)
+    assert causal_least_jerk(heads[2:], steady=steady[2:], rmse=0.1, **CAUSAL_KW).jerk == pytest.approx(alone.jerk, abs=1e-7)
+    with pytest.raises(ValueError, match="steady"):
+        causal_least_jerk(heads, steady=steady[:2], rmse=0.1, **CAUSAL_KW)
+    with pytest.raises(ValueError, match="steady"):
+        causal_least_jerk(heads, rmse=0.1, **CAUSAL_KW)
+
+
 def test_heads_no_causal_controller_can_follow_in_the_band_are_reported():
     # the head steps from 10 to 20 m/s with 2 m of room: only a CAV that knew could have closed in first
     heads = _futures(50, 100, speeds=(10.0, 20.0))
@@ -384,6 +405,26 @@ def test_the_step_tree_drives_the_head_as_the_ring_does(benchmark_script):
     assert torch.allclose(up_down[148:], torch.tensor(24.0, dtype=torch.float64))
 
 
+def test_the_stop_tree_stops_and_drives_off_as_stop_and_go_does(benchmark_script):
+    tree = benchmark_script("ring_causal_bound").stop_tree
+    heads, w, choices = tree(speeds=[10.0, 15.0], depth=2, rate=2.0, holds=[10.0, 15.0], stop=6.0, tail=5.0, dt=DT)
+    assert heads.shape[0] == len(choices) == 8 and float(w.sum()) == pytest.approx(1.0)  # 2 x 2 first, 2 last
+    i = choices.index([(15.0, 10.0), (10.0, 15.0)])  # the last hold: holds[0] + tail, whatever was drawn
+    h = heads[i]
+    # 7.5 s up at 2 m/s^2, 10 s at 15 m/s, 7.5 s down, 6 s stopped, 5 s up to 10 m/s, then held
+    assert float(h[0]) == pytest.approx(0.2) and float(h[74]) == pytest.approx(15.0) and float(h[73]) < 15.0
+    assert torch.all(h[74:175] == 15.0) and float(h[175]) == pytest.approx(14.8)
+    assert torch.all(h[249:310] == 0.0) and float(h[310]) == pytest.approx(0.2) and torch.all(h[359:] == 10.0)
+    longer = heads[choices.index([(15.0, 15.0), (10.0, 15.0)])]
+    assert torch.all(longer[74:225] == 15.0)  # held 5 s longer before it brakes
+    # the CAV tells the drive-off speeds apart when the slower head stops accelerating (history_groups)
+    ids = history_groups(heads)
+    slow, fast = choices.index([(10.0, 10.0), (10.0, 15.0)]), choices.index([(15.0, 10.0), (10.0, 15.0)])
+    first = int((ids[slow] != ids[fast]).nonzero()[0])  # the first command chosen after a speed that differs
+    assert float(heads[slow, first - 2]) == float(heads[fast, first - 2]) == 10.0  # both reach 10 m/s, then
+    assert float(heads[slow, first - 1]) == 10.0 and float(heads[fast, first - 1]) > 10.0  # only one goes on
+
+
 def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):
     mod = benchmark_script("ring_causal_bound")
     res = mod.main(["--depth", "1", "--epoch", "5", "--tail", "10", "--speeds", "22", "26", "--out", str(tmp_path)])
@@ -398,6 +439,26 @@ def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path
         mod.main(["--gap", "50", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="--stop-gap"):
         mod.main(["--stop-gap", "-1", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--speeds"):
+        mod.main(["--stops", "--speeds", "0", "10", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--stops"):
+        mod.main(["--stops", "--ramps", "--out", str(tmp_path)])
+
+
+def test_the_stop_and_go_bound_with_the_speed_bar_as_a_user_runs_it(benchmark_script, tmp_path):
+    mod = benchmark_script("ring_causal_bound")
+    args = ["--stops", "--speeds", "6", "10", "--depth", "1", "--tail", "5", "--gap", "8", "--out", str(tmp_path)]
+    free = mod.main(args)["rows"]
+    res = mod.main([*args, "--rmse", "0.05", "--rmse-norm", "linf", "--stop-gap", "5"])
+    bar = res["rows"]
+    assert free["causal bound"]["rmse"] > 0.05 and res["stop_rule_excess"] <= 1e-9  # stopping-safe by the rule itself
+    # every steady sample within 0.05 m/s of the head's speed, at a price in jerk the band alone does not pay
+    assert free["causal bound"]["rmse"] > 0.05 >= bar["causal bound"]["rmse"]
+    assert max(bar["causal bound"]["rmse_per_future"]) <= 0.05 + 1e-6
+    assert bar["causal bound"]["jerk"] > free["causal bound"]["jerk"]
+    assert bar["clairvoyant"]["jerk"] <= bar["causal bound"]["jerk"] + 1e-9
+    assert bar["IDM-as-CAV"] == free["IDM-as-CAV"]  # the replays do not depend on the bar or the stopping rule
+    assert "speed error on steady samples (linf) <= 0.05 m/s" in (tmp_path / "causal_bound.md").read_text()
 
 
 def test_the_jerk_oracle_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):

@@ -349,7 +349,8 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                       s_max: float | None, weights=None, count_from: int = 0, count_to: int | None = None,
                       accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
                       stop_gap: float | None = None, leader_brake: float | None = None, a_prev: float | None = None,
-                      end_speeds=None, time_limit: float = 600.0) -> CausalResult:
+                      end_speeds=None, steady=None, rmse: float | None = None, norm: str = "l1",
+                      time_limit: float = 600.0) -> CausalResult:
     """The least jerk of any **causal** CAV over a set of head futures: a lower bound, where
     :func:`least_jerk` (which knows the head's future) is not one, of what a controller that only measures
     the head can reach.
@@ -365,6 +366,11 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     keep the bars: a settling prefix before, and after, a tail that stops the plan from saving jerk by
     leaving a speed step unanswered at the end. That tail, though, can answer it with any jerk; so a plan can
     also be made to end settled, ``end_speeds`` (``[L]``, e.g. each head's last speed), and count every step.
+
+    ``steady`` (``[L, N]`` bool, each head's steady samples, e.g. :func:`steady_mask` of its speeds) with
+    ``rmse`` (m/s) adds :func:`least_jerk`'s speed bar on each head: the mean |v - v_head| over its steady samples
+    at most ``rmse`` (``norm`` ``"l1"``, implied by an RMSE at most ``rmse``, so the bound stays a bound for the
+    RMSE bar), or every such sample within ``rmse`` (``"linf"``).
 
     Every causal controller that keeps these bars on all ``L`` heads has, averaged with ``weights`` over them,
     at least this mean |jerk| over the counted steps, whatever else it observes (the CAV's own state follows
@@ -404,18 +410,28 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     ends = [None] * L if end_speeds is None else torch.as_tensor(end_speeds, dtype=torch.float64).flatten().tolist()
     if len(ends) != L:
         raise ValueError(f"causal_least_jerk: end_speeds must be None or {L} values (m/s >= 0), got {len(ends)}")
+    masks = [None] * L
+    if rmse is not None:
+        _check("steady", steady is not None, "an [L, N] bool mask when rmse is given", steady)
+        st = torch.as_tensor(steady)
+        if tuple(st.shape) != (L, N):
+            raise ValueError(f"causal_least_jerk: steady must be [{L}, {N}] (one mask per head), got {tuple(st.shape)}")
+        masks = list(st)
     step = np.arange(1, N)  # u_t is the change into step t + 1
     counted = (step >= count_from) & (step < count_to)
     with_prev = a_prev is not None and count_from == 0  # the change from a_prev into step 0 counts too
     n_counted = int(counted.sum()) + with_prev
     progs = [_program(vh[i], v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min, s_max=s_max,
-                      accel_bounds=accel_bounds, gap_floor=gap_floor, steady=None, rmse=None, norm="l1",
+                      accel_bounds=accel_bounds, gap_floor=gap_floor, steady=masks[i], rmse=rmse, norm=norm,
                       stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i], band_weight=None,
                       track_weight=None) for i in range(L)]
-    width = len(progs[0].cost)
-    # the counted changes: u (after a, v, g) and, with a_prev, the first priced column after it
-    mask = np.r_[np.zeros(3 * N), counted, [1.0] * with_prev, np.zeros(width - 4 * N + 1 - with_prev)]
-    cost = np.concatenate([p.cost * mask * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
+    # each head's columns (_program's order): a, v, g, u (N - 1), e (one per steady sample), then a_prev's when given
+    widths = [len(p.cost) for p in progs]
+    offsets = np.r_[0, np.cumsum(widths)[:-1]]
+    # the counted changes: u and, when the change from a_prev counts, a_prev's column, the last
+    cost = np.concatenate([
+        p.cost * np.r_[np.zeros(3 * N), counted, np.zeros(widths[i] - 4 * N + 1 - with_prev), [1.0] * with_prev]
+        * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
     # one controller: a_t of every head equals a_t of the first head with the same history
     ids = history_groups(vh).numpy()
     rows, cols, vals = [], [], []
@@ -426,10 +442,10 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
             j = leader.setdefault(ids[i, t], i)
             if j != i:
                 rows += [k, k]
-                cols += [i * width + t, j * width + t]
+                cols += [offsets[i] + t, offsets[j] + t]
                 vals += [1.0, -1.0]
                 k += 1
-    same = sp.csr_matrix((vals, (rows, cols)), shape=(k, L * width))
+    same = sp.csr_matrix((vals, (rows, cols)), shape=(k, sum(widths)))
     prog = _Program(cost=cost, A_ub=sp.block_diag([p.A_ub for p in progs], format="csr"),
                     b_ub=np.concatenate([p.b_ub for p in progs]),
                     A_eq=sp.vstack([sp.block_diag([p.A_eq for p in progs], format="csr"), same]).tocsr(),
@@ -437,7 +453,7 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                     bounds=[b for p in progs for b in p.bounds], n=N)
     x, status = _solve(prog, time_limit=time_limit, who="causal_least_jerk",
                        infeasible="no causal command sequence keeps the bars on every head")
-    x = torch.as_tensor(x).reshape(L, width)
+    x = torch.stack([torch.as_tensor(x[o:o + 3 * N]) for o in offsets])  # each head's a, v, g
     accel = x[:, :N]
     change = accel.diff(dim=1, prepend=accel[:, :1] if a_prev is None else torch.full((L, 1), float(a_prev))).abs()
     per_head = (change * torch.as_tensor(np.r_[float(with_prev), counted])).sum(1) / (n_counted * dt)
