@@ -25,7 +25,7 @@ is the policy above 20 m/s (its learned residual is faded out there).
 
 ``--stops`` builds a head that stops and drives off instead, as stop_and_go's: from a standstill it drives off
 ``--depth`` times to one of ``--speeds``, holds it one of ``--holds`` seconds, brakes to a standstill and
-stands ``--stop`` s, all at ``--rate``; the CAV starts stopped ``--gap`` behind. ``--rmse R`` adds the steady
+stands one of ``--stop`` seconds, all at ``--rate``; the CAV starts stopped ``--gap`` behind. ``--rmse R`` adds the steady
 speed bar: on each future's steady samples (the report's: the head's acceleration under 0.05 m/s^2 for the
 settle time; a last hold counts for ``--holds[0]`` s, as the others) the mean |speed error| at most R (a
 relaxation of the steady RMSE bar R, so still a bound), or with ``--rmse-norm linf`` every sample within R
@@ -97,23 +97,24 @@ def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tai
     return heads, weights, [[options[c] for c in f] for f in futures]
 
 
-def stop_tree(*, speeds, depth: int, rate: float, holds, stop: float, tail: float, dt: float):
+def stop_tree(*, speeds, depth: int, rate: float, holds, stops, tail: float, dt: float):
     """``(heads [L, N], weights [L], choices)`` of a head that stops and drives off, as stop_and_go's: from a
     standstill it drives off ``depth`` times at ``rate`` (m/s^2) to one of ``speeds``, holds it one of ``holds``
-    seconds (equal shares of each), brakes at ``rate`` to a standstill and stands ``stop`` s; the last drive-off
-    holds its speed ``holds[0] + tail`` s instead. The CAV learns the speed the head drives off to only when
-    the head stops accelerating short of the others, how long it holds only when it brakes, and the next
-    speed at the next drive-off. ``choices``: per future, ``(speed, seconds held)`` per drive-off."""
+    seconds, brakes at ``rate`` to a standstill and stands one of ``stops`` seconds (equal shares of each); the
+    last drive-off holds its speed ``holds[0] + tail`` s instead. The CAV learns the speed the head drives off
+    to only when the head stops accelerating short of the others, how long it holds only when it brakes, how
+    long it stands only when it drives off. ``choices``: per future, ``(speed, seconds held, seconds
+    stood)`` per drive-off (the last: ``(speed, seconds held)``)."""
     import torch
 
-    options = list(itertools.product([float(v) for v in speeds], [float(h) for h in holds]))
+    options = list(itertools.product(*([float(x) for x in xs] for xs in (speeds, holds, stops))))
     last_options = [(v, float(holds[0]) + tail) for v in speeds]  # nothing follows the last hold: one length
     futures = [[*first, last] for first in itertools.product(options, repeat=depth - 1) for last in last_options]
     plans = []
     for future in futures:  # (target, seconds held after reaching it) per phase
         phases = []
-        for k, (v, held) in enumerate(future):
-            phases += [(v, held)] + ([] if k == depth - 1 else [(0.0, stop)])
+        for v, held, *stood in future:
+            phases += [(v, held)] + ([(0.0, stood[0])] if stood else [])
         plans.append(phases)
 
     def drive(phases) -> list[float]:
@@ -145,12 +146,13 @@ def main(argv=None) -> dict:
                         "smooth heads like sine_fast's (24 +- 4 m/s over 40 s: at most 0.63 m/s^2)")
     p.add_argument("--stops", action="store_true",
                    help="a head that stops and drives off (stop_and_go's): from a standstill it drives off --depth times "
-                        "to one of --speeds (m/s), holds it one of --holds s, brakes to a standstill and stands --stop s, ramps "
+                        "to one of --speeds (m/s), holds it one of --holds s, brakes to a standstill and stands one of --stop s, ramps "
                         "at --rate; --v0, --epoch and --p-hold do not apply (the CAV starts stopped, --gap behind)")
     p.add_argument("--rate", type=float, default=2.0, help="with --stops: the head's ramps (m/s^2; stop_and_go: 2)")
     p.add_argument("--holds", type=float, nargs="+", default=[10.0],
                    help="with --stops: how long the head may hold each speed (s, equal shares; stop_and_go: 10)")
-    p.add_argument("--stop", type=float, default=6.0, help="with --stops: seconds of each standstill (stop_and_go: 6)")
+    p.add_argument("--stop", type=float, nargs="+", default=[6.0],
+                   help="with --stops: how long the head may stand at each stop (s, equal shares; stop_and_go: 6)")
     p.add_argument("--rmse", type=float, default=None, metavar="R",
                    help="the bound's and the clairvoyant CAV's mean |speed error| on each future's steady samples (the "
                         "report's: the head's acceleration under 0.05 m/s^2 for the settle time) at most R m/s, implied by "
@@ -184,7 +186,7 @@ def main(argv=None) -> dict:
                               ("--speeds", a.relative or a.ramps or min(a.speeds) >= 0, ">= 0 (m/s)"),
                               ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
                               ("--rate", a.rate > 0, "> 0 (m/s^2)"), ("--holds", min(a.holds) >= 0, ">= 0 (s)"),
-                              ("--stop", a.stop >= 0, ">= 0 (s)"), ("--rmse", a.rmse is None or a.rmse > 0, "> 0 (m/s)"),
+                              ("--stop", min(a.stop) >= 0, ">= 0 (s)"), ("--rmse", a.rmse is None or a.rmse > 0, "> 0 (m/s)"),
                               ("--time-limit", a.time_limit > 0, "> 0 (s)")):
         if not ok:
             raise SystemExit(f"{name} is invalid; allowed: {allowed}")
@@ -213,7 +215,7 @@ def main(argv=None) -> dict:
     if not s_min <= a.gap <= s_max:
         raise SystemExit(f"--gap = {a.gap} is invalid; allowed: in the band [{s_min}, {s_max}] m")
     if a.stops:
-        heads, w, choices = stop_tree(speeds=a.speeds, depth=a.depth, rate=a.rate, holds=a.holds, stop=a.stop,
+        heads, w, choices = stop_tree(speeds=a.speeds, depth=a.depth, rate=a.rate, holds=a.holds, stops=a.stop,
                                       tail=a.tail, dt=dt)
     else:
         heads, w, choices = step_tree(speeds=a.speeds, v0=a.v0, epoch=a.epoch, depth=a.depth, p_hold=a.p_hold,
@@ -291,7 +293,7 @@ def main(argv=None) -> dict:
                f" (the bound's largest command above the rule's own cap: {stop_excess:.1e} m/s^2)")
     if a.stops:
         head = (f"from a standstill the head drives off {a.depth} time{'s' if a.depth > 1 else ''} at {a.rate} m/s^2 to one of {a.speeds} m/s, "
-                f"holds it {' or '.join(f'{h:g}' for h in a.holds)} s and stops for {a.stop} s")
+                f"holds it {' or '.join(f'{h:g}' for h in a.holds)} s and stands {' or '.join(f'{x:g}' for x in a.stop)} s")
     else:
         head = (f"the head at {a.v0} m/s decides {a.depth} times, every {a.epoch} s, to keep "
                 f"its {'acceleration' if a.ramps else 'target'} (p = {a.p_hold:.3f}) or "
@@ -325,10 +327,13 @@ def main(argv=None) -> dict:
 
 
 def choice_label(choice) -> str:
-    """A head's decision as the plot's legend names it: a hold, a value, or (--stops) a speed and how long held."""
+    """A head's decision as the plot's legend names it: a hold, a value, or (--stops) a speed, how long held and
+    how long stood after it."""
     if choice is None:
         return "hold"
-    return f"{choice[0]:g} m/s, {choice[1]:g} s" if isinstance(choice, (tuple, list)) else f"{choice:g}"
+    if not isinstance(choice, (tuple, list)):
+        return f"{choice:g}"
+    return f"{choice[0]:g} m/s {choice[1]:g} s" + (f", stands {choice[2]:g} s" if len(choice) > 2 else "")
 
 
 def plot(path: str, heads, bound, choices, dt: float, title: str) -> None:

@@ -407,19 +407,22 @@ def test_the_step_tree_drives_the_head_as_the_ring_does(benchmark_script):
 
 def test_the_stop_tree_stops_and_drives_off_as_stop_and_go_does(benchmark_script):
     tree = benchmark_script("ring_causal_bound").stop_tree
-    heads, w, choices = tree(speeds=[10.0, 15.0], depth=2, rate=2.0, holds=[10.0, 15.0], stop=6.0, tail=5.0, dt=DT)
+    heads, w, choices = tree(speeds=[10.0, 15.0], depth=2, rate=2.0, holds=[10.0, 15.0], stops=[6.0], tail=5.0, dt=DT)
     assert heads.shape[0] == len(choices) == 8 and float(w.sum()) == pytest.approx(1.0)  # 2 x 2 first, 2 last
-    i = choices.index([(15.0, 10.0), (10.0, 15.0)])  # the last hold: holds[0] + tail, whatever was drawn
+    i = choices.index([(15.0, 10.0, 6.0), (10.0, 15.0)])  # the last hold: holds[0] + tail, whatever was drawn
     h = heads[i]
     # 7.5 s up at 2 m/s^2, 10 s at 15 m/s, 7.5 s down, 6 s stopped, 5 s up to 10 m/s, then held
     assert float(h[0]) == pytest.approx(0.2) and float(h[74]) == pytest.approx(15.0) and float(h[73]) < 15.0
     assert torch.all(h[74:175] == 15.0) and float(h[175]) == pytest.approx(14.8)
     assert torch.all(h[249:310] == 0.0) and float(h[310]) == pytest.approx(0.2) and torch.all(h[359:] == 10.0)
-    longer = heads[choices.index([(15.0, 15.0), (10.0, 15.0)])]
+    longer = heads[choices.index([(15.0, 15.0, 6.0), (10.0, 15.0)])]
     assert torch.all(longer[74:225] == 15.0)  # held 5 s longer before it brakes
+    stood, _, picks = tree(speeds=[15.0], depth=2, rate=2.0, holds=[10.0], stops=[6.0, 9.0], tail=5.0, dt=DT)
+    long_stop = stood[picks.index([(15.0, 10.0, 9.0), (15.0, 15.0)])]
+    assert torch.all(long_stop[249:340] == 0.0) and float(long_stop[340]) == pytest.approx(0.2)  # 3 s longer
     # the CAV tells the drive-off speeds apart when the slower head stops accelerating (history_groups)
     ids = history_groups(heads)
-    slow, fast = choices.index([(10.0, 10.0), (10.0, 15.0)]), choices.index([(15.0, 10.0), (10.0, 15.0)])
+    slow, fast = choices.index([(10.0, 10.0, 6.0), (10.0, 15.0)]), choices.index([(15.0, 10.0, 6.0), (10.0, 15.0)])
     first = int((ids[slow] != ids[fast]).nonzero()[0])  # the first command chosen after a speed that differs
     assert float(heads[slow, first - 2]) == float(heads[fast, first - 2]) == 10.0  # both reach 10 m/s, then
     assert float(heads[slow, first - 1]) == 10.0 and float(heads[fast, first - 1]) > 10.0  # only one goes on
