@@ -178,6 +178,9 @@ def main(argv=None) -> dict:
                    help="replay the controllers only (no programs): to set another --set base beside a bound already solved")
     p.add_argument("--time-limit", type=float, default=1800.0, help="HiGHS's limit (s)")
     p.add_argument("--plot", default=None, help="PNG: a few futures' head speed, the bound's speed, command and gap")
+    p.add_argument("--plot-future", type=int, default=None, metavar="K",
+                   help="with --plot: also PLOT_futureK.png, future K (its index in the JSON's choices) with the bound "
+                        "beside IDM-as-CAV and the replayed base")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     for name, ok, allowed in (("--depth", a.depth >= 1, ">= 1"), ("--epoch", a.epoch > 0, "> 0 (s)"),
@@ -222,6 +225,9 @@ def main(argv=None) -> dict:
                                       tail=a.tail, dt=dt, head_bounds=tuple(sc.head_accel_bounds),
                                       relative=a.relative, ramps=a.ramps)
     L, N = heads.shape
+    if a.plot_future is not None and not (a.plot and 0 <= a.plot_future < L):
+        raise SystemExit(f"--plot-future = {a.plot_future} is invalid; allowed: with --plot, a future's index in "
+                         f"[0, {L - 1}]")
     # each future's steady samples, as the report counts them (from the head's speed before the first step: v0)
     head_accel = torch.cat([heads.new_full((L, 1), a.v0), heads], 1).diff(dim=1) / dt
     steady = steady_samples(head_accel, torch.ones(L, N, dtype=torch.bool), int(round(cfg.eval.settle_seconds / dt)))
@@ -281,8 +287,10 @@ def main(argv=None) -> dict:
     laws[f"{a.experiment}'s base{' (' + ' '.join(a.set) + ')' if a.set else ''}"] = \
         residual_base(cfg.transforms.residual, env).module.double()
     lo, hi = sc.cav_accel_bounds
+    driven = {}  # name -> (speed, command, gap) after the prefix
     for name, law in laws.items():
         m = replay(law, trace, dt=dt, low=lo, high=hi, warmup=0.0, settle=float(cfg.eval.settle_seconds))
+        driven[name] = (m["speed"][:, P:], m["accel"][:, P:], m["gap"][:, P:])
         per = mean_jerk(m["accel"][:, P:], m["accel"][:, P - 1])
         gap = m["gap"][:, P:]
         rows[name] = {"jerk": float((per * w).sum()), "per_future": per, "gaps": (float(gap.min()), float(gap.max())),
@@ -321,8 +329,18 @@ def main(argv=None) -> dict:
                                                   for kk, vv in r.items()} for k, r in rows.items()}}
     (out / "causal_bound.json").write_text(json.dumps(result, indent=1))
     if a.plot and not a.replay_only:
-        plot(a.plot, heads, bound, choices, dt, "the least-jerk causal CAV on a tree of head futures"
-             + ("" if a.stop_gap is None else f", stopping-safe at {a.stop_gap:g} m"))
+        title = ("the least-jerk causal CAV on a tree of head futures"
+                 + ("" if a.stop_gap is None else f", stopping-safe at {a.stop_gap:g} m")
+                 + ("" if a.rmse is None else f", steady speed error ({a.rmse_norm}) <= {a.rmse:g} m/s"))
+        plot(a.plot, heads, bound, choices, dt, title)
+        if a.plot_future is not None:
+            k = a.plot_future
+            base_name = list(laws)[-1]
+            plot_future(str(Path(a.plot).with_suffix("")) + f"_future{k}.png", heads[k], dt,
+                        {"causal bound": (bound.speed[k], bound.accel[k], bound.gap[k]),
+                         "IDM-as-CAV": tuple(x[k] for x in driven["IDM-as-CAV"]),
+                         "the base": tuple(x[k] for x in driven[base_name])},
+                        steady[k], f"future {k}: " + " → ".join(map(choice_label, choices[k])))
     return result
 
 
@@ -334,6 +352,34 @@ def choice_label(choice) -> str:
     if not isinstance(choice, (tuple, list)):
         return f"{choice:g}"
     return f"{choice[0]:g} m/s {choice[1]:g} s" + (f", stands {choice[2]:g} s" if len(choice) > 2 else "")
+
+
+def plot_future(path: str, head, dt: float, drivers: dict, steady, title: str) -> None:
+    """One future: the head's and each driver's speed (the steady samples shaded), command and gap."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    t = (torch.arange(head.shape[0]) + 1) * dt
+    fig, ax = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    ax[0].fill_between(t, 0, float(head.max()) * 1.1, where=steady.bool(), color="0.9", step="mid",
+                       label="steady samples")
+    ax[0].plot(t, head, "k--", lw=0.9, label="head")
+    for name, (speed, accel, gap) in drivers.items():
+        line, = ax[0].plot(t, speed, lw=1.2, label=name)
+        ax[1].plot(t, accel, lw=1.0, color=line.get_color())
+        ax[2].plot(t, gap, lw=1.0, color=line.get_color())
+    ax[0].set_ylabel("speed (m/s)")
+    ax[1].set_ylabel("command (m/s²)")
+    ax[2].set_ylabel("gap (m)")
+    ax[2].set_xlabel("time (s)")
+    ax[0].legend(fontsize=7)
+    ax[0].set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def plot(path: str, heads, bound, choices, dt: float, title: str) -> None:

@@ -462,6 +462,11 @@ def test_the_stop_and_go_bound_with_the_speed_bar_as_a_user_runs_it(benchmark_sc
     assert bar["clairvoyant"]["jerk"] <= bar["causal bound"]["jerk"] + 1e-9
     assert bar["IDM-as-CAV"] == free["IDM-as-CAV"]  # the replays do not depend on the bar or the stopping rule
     assert "speed error on steady samples (linf) <= 0.05 m/s" in (tmp_path / "causal_bound.md").read_text()
+    # one future beside IDM-as-CAV and the base, as a picture
+    mod.main([*args, "--plot", str(tmp_path / "tree.png"), "--plot-future", "1"])
+    assert (tmp_path / "tree.png").stat().st_size > 0 and (tmp_path / "tree_future1.png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="--plot-future"):
+        mod.main([*args, "--plot", str(tmp_path / "tree.png"), "--plot-future", "2"])  # two futures: 0 and 1
 
 
 def test_the_jerk_oracle_benchmark_as_a_user_runs_it(benchmark_script, tmp_path):
