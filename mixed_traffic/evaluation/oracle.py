@@ -367,7 +367,8 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     leaving a speed step unanswered at the end. That tail, though, can answer it with any jerk; so a plan can
     also be made to end settled, ``end_speeds`` (``[L]``, e.g. each head's last speed), and count every step.
 
-    ``steady`` (``[L, N]`` bool, each head's steady samples, e.g. :func:`steady_mask` of its speeds) with
+    ``steady`` (``[L, N]`` bool, each head's steady samples, e.g. the report's:
+    :func:`~mixed_traffic.evaluation.harness.steady_samples` of the head's accelerations) with
     ``rmse`` (m/s) adds :func:`least_jerk`'s speed bar on each head: the mean |v - v_head| over its steady samples
     at most ``rmse`` (``norm`` ``"l1"``, implied by an RMSE at most ``rmse``, so the bound stays a bound for the
     RMSE bar), or every such sample within ``rmse`` (``"linf"``).
