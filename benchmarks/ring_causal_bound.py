@@ -271,9 +271,10 @@ def main(argv=None) -> dict:
             cap = safe_accel_upper(bound.gap[:, :-1], bound.speed[:, :-1], heads[:, :-1], s_min=a.stop_gap, dt=dt,
                                    brake=-float(sc.cav_accel_bounds[0]), leader_brake=kw["leader_brake"])
             stop_excess = float((bound.accel[:, 1:] - cap).max())
+        bound_rmse = steady_rmse(bound.speed)
         rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
                                  "gaps": (float(bound.gap.min()), float(bound.gap.max())),
-                                 "rmse": weighted(steady_rmse(bound.speed), w), "rmse_per_future": steady_rmse(bound.speed)},
+                                 "rmse": weighted(bound_rmse, w), "rmse_per_future": bound_rmse},
                 "clairvoyant": {"jerk": float((mean_jerk(torch.stack([c.accel for c in clair]), torch.zeros(L)) * w).sum()),
                                 "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w)}}
     P = int(round(60.0 / dt))  # the replayed controllers settle behind the head at v0 first
@@ -290,12 +291,11 @@ def main(argv=None) -> dict:
     driven = {}  # name -> (speed, command, gap) after the prefix
     for name, law in laws.items():
         m = replay(law, trace, dt=dt, low=lo, high=hi, warmup=0.0, settle=float(cfg.eval.settle_seconds))
-        driven[name] = (m["speed"][:, P:], m["accel"][:, P:], m["gap"][:, P:])
-        per = mean_jerk(m["accel"][:, P:], m["accel"][:, P - 1])
-        gap = m["gap"][:, P:]
+        speed, accel, gap = driven[name] = (m["speed"][:, P:], m["accel"][:, P:], m["gap"][:, P:])
+        per, per_rmse = mean_jerk(accel, m["accel"][:, P - 1]), steady_rmse(speed)
         rows[name] = {"jerk": float((per * w).sum()), "per_future": per, "gaps": (float(gap.min()), float(gap.max())),
-                      "collisions": int((gap <= 0).any(1).sum()), "rmse": weighted(steady_rmse(m["speed"][:, P:]), w),
-                      "rmse_per_future": steady_rmse(m["speed"][:, P:])}
+                      "collisions": int((gap <= 0).any(1).sum()), "rmse": weighted(per_rmse, w),
+                      "rmse_per_future": per_rmse}
     ref = rows["IDM-as-CAV"]["jerk"]
     checked = ("" if stop_excess is None else
                f" (the bound's largest command above the rule's own cap: {stop_excess:.1e} m/s^2)")
