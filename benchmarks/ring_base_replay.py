@@ -13,6 +13,14 @@ and the collisions (a gap at or below 0); not the return, which sums the humans'
 ``ring_generalization.py --cases tuning``); it also takes the fresh cases of ``ring_generalization.py --cases
 fresh`` and ``fresh_2``, to look into a setting there, not to pick one.
 
+With ``--classic MODEL`` (``idm``, ``soft`` or ``cacc``) the settings are a classical controller's instead
+of the base's: ``--set``, ``--vary`` and ``--grid`` then name the model's parameters (``kv=0.3``, not Hydra
+keys), the reference is the model's defaults with ``--set``, and the head's speeds are still recorded with the
+experiment's base. That searches a classical opponent on the same tuning episodes as the base::
+
+    python benchmarks/ring_base_replay.py --experiment ring_lagrangian_ppo_wide_band --classic cacc \
+        --vary ka=0:1 kv=0.1:1.2 ks=0.01:0.3 h=0.4:2 s0=2:10 --draws 200 --out outputs/results/cacc_replay
+
 Prints the settings on the frontier of (worst jerk excess over the reference across the cases, largest
 head gap across the cases) that collide nowhere, and writes ``OUT/replay.jsonl`` (one line per setting) and
 ``OUT/replay.json``. Check a chosen setting in the env with ``ring_base_probe.py`` before training on it::
@@ -107,6 +115,8 @@ def main(argv=None) -> dict:
                    help=f"subset of {list(NAMES)} (default: the first {len(SEARCHED)}, the ones settings are searched on)")
     p.add_argument("--seed", type=int, default=3000, help="evaluation seed (default 3000, a tuning seed)")
     p.add_argument("--episodes", type=int, default=4)
+    p.add_argument("--classic", default=None, metavar="MODEL",
+                   help="replay settings of this classical controller (idm, soft, cacc) instead of the base's")
     p.add_argument("--out", default="outputs/results/ring_base_replay")
     a = p.parse_args(argv)
     unknown = set(a.cases) - set(NAMES)
@@ -130,7 +140,28 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
 
     def config(extra):
-        return validate_config(compose([f"experiment={a.experiment}", *a.set, *extra]))
+        return validate_config(compose([f"experiment={a.experiment}", *([] if a.classic else a.set), *extra]))
+
+    classic_set = {}
+    if a.classic is not None:
+        from mixed_traffic.controllers.classic import classic_parameters
+
+        try:
+            allowed = classic_parameters(a.classic)
+        except ValueError as e:
+            raise SystemExit(f"--classic: {e}") from None
+        classic_set = _pairs(a.set, "--set", float)
+        named = set(classic_set) | set(_pairs(a.vary, "--vary", _range)) | set(_pairs(a.grid, "--grid", _split))
+        unknown = sorted(named - set(allowed))
+        if unknown:
+            raise SystemExit(f"--set/--vary/--grid: {unknown} are not {a.classic} parameters; allowed: {allowed}")
+
+    def law(extra):
+        """The setting's controller: the base of its Hydra overrides, or (``--classic``) the classical model."""
+        if a.classic is None:
+            return residual_base(config(extra).transforms.residual, env).module.double()
+        params = {**classic_set, **{k: float(v) for k, v in (o.split("=", 1) for o in extra)}}
+        return make_classic_policy(a.classic, env, **params).module.double()
 
     ref_cfg = config([])
     factory = residual_base_factory(ref_cfg)  # fails here, naming residual_idm, for a chain without a base
@@ -160,7 +191,7 @@ def main(argv=None) -> dict:
     t1 = time.perf_counter()
     for extra in tqdm(todo, desc="replay", unit="setting", disable=len(todo) < 2):
         try:
-            base = residual_base(config(extra).transforms.residual, env).module.double()
+            base = law(extra)
         except ValueError as e:  # a drawn setting the base refuses (e.g. gaps[0] >= gaps[1])
             if not extra:
                 raise SystemExit(f"--set: {e}") from None
@@ -179,13 +210,13 @@ def main(argv=None) -> dict:
                      max(c["max_head_gap"] for c in r["cases"].values()))
     frontier = [r for r in ok if not any(key(q)[0] <= key(r)[0] and key(q)[1] <= key(r)[1] and key(q) != key(r)
                                          for q in ok)]
-    print(f"{a.experiment} {' '.join(a.set)}: {len(todo)} settings replayed on {a.cases} (seed {a.seed}, "
+    print(f"{a.classic or a.experiment} {' '.join(a.set)}: {len(todo)} settings replayed on {a.cases} (seed {a.seed}, "
           f"{a.episodes} episodes a case); recording {record_s:.1f} s, {per_setting:.2f} s a setting")
     print("frontier (worst jerk over the reference's, largest head gap), collision-free:")
     for r in sorted(frontier, key=key):
         w, g = key(r)
         print(f"  {100 * w:+6.1f} %  {g:5.1f} m  {' '.join(r['overrides']) or '(reference)'}")
-    out = {"experiment": a.experiment, "set": a.set, "seed": a.seed, "episodes": a.episodes, "cases": a.cases,
+    out = {"experiment": a.experiment, "classic": a.classic, "set": a.set, "seed": a.seed, "episodes": a.episodes, "cases": a.cases,
            "idm_as_cav": idm, "settings": results, "record_seconds": record_s, "seconds_per_setting": per_setting}
     d = Path(a.out)
     d.mkdir(parents=True, exist_ok=True)

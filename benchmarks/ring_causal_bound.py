@@ -20,8 +20,9 @@ optimal sequences are such a controller, on these futures. Beside it, on the sam
 figure (each future known in advance; :func:`~mixed_traffic.evaluation.oracle.least_jerk` with the same
 start, end and count) and controllers replayed behind the same heads (:mod:`mixed_traffic.evaluation.replay`)
 after a 60-s settling prefix at ``--v0`` that is not counted: IDM-as-CAV (the jerk bar's reference), the best
-classical controller (IDM_cav: ``s0`` 7, ``v0`` 40, ``b`` 2) and the ``--experiment``'s classical base, which
-is the policy above 20 m/s (its learned residual is faded out there).
+classical controller without V2V (IDM_cav: ``s0`` 7, ``v0`` 40, ``b`` 2), CACC (the ring's best setting,
+:class:`~mixed_traffic.physics.CACCParams`, fed the head's acceleration of the last step) and the
+``--experiment``'s classical base, which is the policy above 20 m/s (its learned residual is faded out there).
 
 ``--stops`` builds a head that stops and drives off instead, as stop_and_go's: from a standstill it drives off
 ``--depth`` times to one of ``--speeds``, holds it one of ``--holds`` seconds, brakes to a standstill and
@@ -58,7 +59,9 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-CLASSICAL = {"IDM-as-CAV": {}, "IDM_cav (s0 7, v0 40, b 2)": {"s0": 7.0, "v0": 40.0, "b": 2.0}}
+# the classical controllers replayed beside the bound: name -> (model, parameters); CACC reads the head's acceleration
+CLASSICAL = {"IDM-as-CAV": ("idm", {}), "IDM_cav (s0 7, v0 40, b 2)": ("idm", {"s0": 7.0, "v0": 40.0, "b": 2.0}),
+             "CACC": ("cacc", {})}
 
 
 def step_tree(*, speeds, v0: float, epoch: float, depth: int, p_hold: float, tail: float, dt: float,
@@ -284,7 +287,7 @@ def main(argv=None) -> dict:
                   cav_speed=zero + a.v0, cav_accel=zero, head_accel=torch.cat([zero[:, :1], hp.diff(dim=1).float() / dt], 1),
                   gap=zero + a.gap, head_gap=zero + a.gap, valid=torch.ones_like(zero, dtype=torch.bool), raw_accel=zero)
     env = make_env("ring", batch_size=1, seed=0)
-    laws = {name: make_classic_policy("idm", env, **over).module.double() for name, over in CLASSICAL.items()}
+    laws = {name: make_classic_policy(model, env, **over).module.double() for name, (model, over) in CLASSICAL.items()}
     laws[f"{a.experiment}'s base{' (' + ' '.join(a.set) + ')' if a.set else ''}"] = \
         residual_base(cfg.transforms.residual, env).module.double()
     lo, hi = sc.cav_accel_bounds

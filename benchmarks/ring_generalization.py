@@ -174,7 +174,8 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
 def row(rep: dict, profile: str) -> dict:
     m = rep["profiles"][profile]["metrics"]
     return {"collisions": rep["profiles"][profile]["collisions"], "min_gap": m["min_gap"]["min"],
-            "max_head_gap": m["max_head_gap"]["max"], "steady_rmse": m["speed_rmse_steady"]["mean"],
+            "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
+            "steady_rmse": m["speed_rmse_steady"]["mean"],
             "jerk": m["mean_abs_jerk"]["mean"], "return": m["return"]["mean"],
             "intervention_rate": m["safety_clip_rate"]["mean"]}
 
@@ -287,7 +288,7 @@ def main(argv=None) -> dict:
                 i_ = r[key]
                 iv = f"{i_['intervention_rate']:.3f}" if key != spec else "–"
                 lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, {label} | {i_['collisions']} | "
-                             f"{i_['min_gap']:.2f} | – | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | "
+                             f"{i_['min_gap']:.2f} | {i_['min_gap_after']:.2f} | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | "
                              f"{i_['jerk']:.4f} | {i_['return']:.0f} | {iv} |")
     by_speed = {name: r["jerk_by_speed"] for name, r in results.items() if "jerk_by_speed" in r}
     if by_speed:

@@ -688,7 +688,7 @@ class Config:
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads per run (the joblib launcher runs jobs side by side)
     checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
-    # mt-eval: a classical controller instead ("idm", "ovm", "soft"; "base": the experiment's residual base alone;
+    # mt-eval: a classical controller instead ("idm", "ovm", "soft", "cacc"; "base": the experiment's residual base alone;
     # wave rings: a damper or "all")
     controller: str | None = None
     resume: str | None = None  # path to a checkpoint (.pt) or a run directory

@@ -85,6 +85,25 @@ class SoftFollowerParams:
     match_h_max: float = 0.0  # ... and its ceiling by this one: match_gap_max + match_h_max v (s)
 
 
+
+@dataclass(frozen=True)
+class CACCParams:
+    """Cooperative adaptive cruise control: a constant-time-gap follower with the leader's acceleration
+    fed forward (:func:`cacc_accel`), what a CAV that receives its leader's acceleration over V2V runs.
+
+    The defaults are the ring's best CACC: of 600 settings replayed at the tuning seed 3000 on 14 cases
+    (``benchmarks/ring_base_replay.py --classic cacc``), the one with the least worst-case jerk against
+    IDM-as-CAV's among those that keep every gap in the 5-40 m band after the warm-up (docs/results.md,
+    "Against cooperative adaptive cruise control").
+    """
+
+    ka: float = 0.086  # share of the leader's acceleration fed forward
+    kv: float = 0.662  # speed-difference gain (1/s)
+    ks: float = 0.204  # gap-error gain (1/s^2)
+    s0: float = 9.357  # standstill gap of the spacing policy (m)
+    h: float = 0.941  # time gap of the spacing policy (s)
+    e_max: float = 32.95  # the gap error counts up to this much (m): a long gap is closed at a capped rate
+
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
 # setting of a local search (benchmarks/ring_soft_search.py, on the frontier's five cases with a tuning seed,
 # 3000, that no report uses) over the family with brake_opening 0, kept with the linear law's braking
@@ -141,6 +160,23 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     linear = linear + ks_edge * beyond
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 
+
+
+def cacc_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, ka: Num, kv: Num, ks: Num, s0: Num,
+               h: Num, e_max: Num = math.inf, **_) -> Tensor:
+    """``ka a_leader + kv (v_leader - v) + ks min(gap - (s0 + h v), e_max)``: the linear CACC law.
+
+    The spacing policy ``s0 + h v`` keeps a constant time gap; the leader's acceleration of the last step
+    (received over V2V) is fed forward, so the follower starts to answer a change of its leader's speed
+    before the gap and the speed difference show it. ``e_max`` caps the gap error, so that a follower
+    far behind (a long start) closes the gap at a bounded rate instead of at its top acceleration.
+
+    >>> round(float(cacc_accel(torch.tensor(25.0), torch.tensor(20.0), torch.tensor(20.0), torch.tensor(0.5),
+    ...                        ka=0.5, kv=0.58, ks=0.1, s0=5.0, h=1.0)), 3)
+    0.25
+    """
+    error = torch.clamp(gap - (s0 + h * v), max=e_max)
+    return ka * a_leader + kv * (v_leader - v) + ks * error
 
 def params_as_tensors(params, shape, *, dtype=torch.float32, device=None) -> dict[str, Tensor]:
     """Expand a parameter dataclass to a dict of tensors of ``shape`` (per vehicle)."""

@@ -71,7 +71,7 @@ def test_jerk_after_the_warm_up_leaves_the_start_transient_out():
 
 
 def test_classic_controllers_follow_without_collision():
-    for name in ("idm", "ovm", "soft"):
+    for name in ("idm", "ovm", "soft", "cacc"):
         env = make_env("ring", batch_size=3, seed=0)
         td = env.rollout(600, make_classic_policy(name, env), break_when_any_done=False)
         assert not td["next", "collision"].any(), name
@@ -81,6 +81,8 @@ def test_classic_controllers_follow_without_collision():
         make_classic_policy("idm", env, T_typo=1.0)
     with pytest.raises(ValueError, match="allowed"):
         make_classic_policy("pid", env)
+    with pytest.raises(ValueError, match=r"cacc parameter h = -1.0 is invalid; allowed: >= 0"):
+        make_classic_policy("cacc", env, h=-1.0)
 
 
 def test_evaluate_a_classical_controller_is_deterministic():

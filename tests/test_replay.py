@@ -65,6 +65,36 @@ def test_another_law_replayed_behind_the_recording_matches_its_own_env_run(fast_
     assert float((r["gap"] - trace.gap.double()).abs().max()) > 5.0
 
 
+def test_cacc_replayed_behind_its_own_recording_sees_the_heads_acceleration_as_the_env_gives_it():
+    """CACC reads the leader's acceleration of the last step. Replayed behind its own rollout it gives the
+    env's gaps and jerk, so the replay feeds the head's acceleration with the env's timing; fed one step
+    late (the acceleration of the step before), the gaps part from the env's."""
+    cfg = _cfg("sine", 60.0, v_star=24.0, amplitude=4.0, period=20.0)
+    m, trace = _env_run(cfg, classic_factory("cacc:ka=0.6"), "sine")  # a strong feed-forward: timing shows
+    kw = replay_settings(cfg, "sine")
+    cacc = make_classic_policy("cacc", make_env("ring", batch_size=1, seed=0), ka=0.6).module.double()
+    r = replay(cacc, trace, **kw)
+    assert torch.allclose(r["gap"], trace.gap.double(), atol=2e-3)
+    assert float(r["mean_abs_jerk"].mean()) == pytest.approx(m["mean_abs_jerk"]["mean"], rel=1e-4)
+
+    class Late(torch.nn.Module):  # the same law, handed the head's acceleration one step late
+        reads_leader_accel = True
+
+        def __init__(self):
+            super().__init__()
+            self.prev = None
+
+        def forward(self, gap, v, vl, al):
+            late = torch.zeros_like(al) if self.prev is None else self.prev
+            self.prev = al
+            return cacc(gap, v, vl, late)
+
+    late = replay(Late(), trace, **kw)
+    assert float((late["gap"] - trace.gap.double()).abs().max()) > 0.05
+    with pytest.raises(ValueError, match="cacc reads the leader's acceleration"):
+        cacc(torch.ones(1), torch.ones(1), torch.ones(1))
+
+
 def test_stacked_profiles_replay_as_each_alone(fast_random_steps):
     """Traces of different lengths stacked into one batch (the shorter padded with invalid steps) give each
     profile's metrics as replaying it alone does."""
@@ -119,3 +149,24 @@ def test_the_replay_benchmark_ranks_a_grid_against_its_reference(tmp_path):
     import ring_base_replay
     assert "sine_wide" in ring_base_replay.NAMES and "sine_wide" not in ring_base_replay.PROBED
     assert {"sine_slow_wide", "sine_cross"} <= set(ring_base_replay.NAMES)
+
+
+def test_the_replay_benchmark_searches_a_classical_controller_by_its_own_parameters(tmp_path):
+    """``--classic cacc``: settings name CACC's parameters (not Hydra keys), the reference is CACC's
+    defaults, and CACC is replayed with the head's acceleration it reads; unknown names fail before
+    anything is recorded."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent.parent / "benchmarks"))
+    from ring_base_replay import main
+
+    out = main(["--experiment", "ring_lagrangian_ppo_band_stop", "--classic", "cacc", "--cases", "sine_fast",
+                "--episodes", "2", "--set", "h=1.2", "--grid", "ka=0.0,0.6", "--out", str(tmp_path)])
+    assert out["classic"] == "cacc" and [s["overrides"] for s in out["settings"]] == [[], ["ka=0.0"], ["ka=0.6"]]
+    jerk = [s["cases"]["sine_fast"]["jerk"] for s in out["settings"]]
+    assert len(set(jerk)) == 3  # the fed-forward share changes the command behind a sine
+    with pytest.raises(SystemExit, match=r"\['kz'\] are not cacc parameters; allowed: \['e_max', 'h', 'ka'"):
+        main(["--experiment", "ring_lagrangian_ppo_band_stop", "--classic", "cacc", "--vary", "kz=0:1"])
+    with pytest.raises(SystemExit, match="--classic: classic controller 'pid' is invalid"):
+        main(["--experiment", "ring_lagrangian_ppo_band_stop", "--classic", "pid"])

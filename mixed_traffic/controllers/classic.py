@@ -1,8 +1,9 @@
-"""Classical car-following models driving the CAV: IDM, OVM and a soft follower as policies.
+"""Classical car-following models driving the CAV: IDM, OVM, a soft follower and CACC as policies.
 
 Each is a ``TensorDictModule`` reading the env's ``("cav", "gap")``, ``("cav", "speed")``
-and ``("cav", "leader_speed")`` and writing ``"action"`` (m/s^2, saturated and clipped
-to the CAV's bounds), so the evaluation harness runs them like any learned policy.
+and ``("cav", "leader_speed")`` (CACC also ``("cav", "leader_accel")``, received over V2V) and
+writing ``"action"`` (m/s^2, saturated and clipped to the CAV's bounds), so the evaluation
+harness runs them like any learned policy.
 
 >>> from mixed_traffic import make_env
 >>> from mixed_traffic.controllers.classic import make_classic_policy
@@ -22,14 +23,24 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
 
-from mixed_traffic.physics import IDMParams, OVMParams, SoftFollowerParams, car_following_accel, soft_follower_accel
+from mixed_traffic.physics import (
+    CACCParams,
+    IDMParams,
+    OVMParams,
+    SoftFollowerParams,
+    cacc_accel,
+    car_following_accel,
+    soft_follower_accel,
+)
 
-CLASSIC = ("idm", "ovm", "soft")
-_PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams}
+CLASSIC = ("idm", "ovm", "soft", "cacc")
+_PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams, "cacc": CACCParams}
+LEADER_ACCEL_KEY = ("cav", "leader_accel")  # the leader's acceleration of the last step (V2V), read by CACC
 
 
 class CarFollowingCAV(nn.Module):
-    """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules."""
+    """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules; CACC also reads
+    the leader's acceleration (``model(gap, v, v_leader, a_leader)``; :attr:`reads_leader_accel`)."""
 
     def __init__(self, model: str, params, low: float, high: float, *, gap_max: float | None = None):
         super().__init__()
@@ -59,10 +70,22 @@ class CarFollowingCAV(nn.Module):
                 raise ValueError(f"gap_max must be above the standstill gap s0 = {self.params['s0']} m, "
                                  f"got {gap_max}")
             self.params["gap_max"] = float(gap_max)
+        if model == "cacc":
+            p = self.params
+            for name, ok, allowed in (("h", p["h"] >= 0.0, ">= 0 (s)"), ("e_max", p["e_max"] > 0.0, "> 0 (inf: no cap)"),
+                                      *((k, p[k] >= 0.0, ">= 0") for k in ("ka", "kv", "ks"))):
+                if not ok:
+                    raise ValueError(f"cacc parameter {name} = {p[name]} is invalid; allowed: {allowed}")
+        self.reads_leader_accel = model == "cacc"
         self.low, self.high = float(low), float(high)
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        if self.model == "soft":
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
+                leader_accel: torch.Tensor | None = None) -> torch.Tensor:
+        if self.model == "cacc":
+            if leader_accel is None:
+                raise ValueError("cacc reads the leader's acceleration: pass leader_accel")
+            a = cacc_accel(gap, speed, leader_speed, leader_accel, **self.params)
+        elif self.model == "soft":
             a = soft_follower_accel(gap, speed, leader_speed, **self.params)
         else:
             a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
@@ -276,8 +299,9 @@ def classic_parameters(model: str) -> list[str]:
 
 def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
                         **param_overrides) -> TensorDictModule:
-    """IDM (SUMO's defaults, as the ring's humans), OVM (DeeP-LCC's set) or the soft follower
-    (:class:`~mixed_traffic.physics.SoftFollowerParams`) driving every CAV.
+    """IDM (SUMO's defaults, as the ring's humans), OVM (DeeP-LCC's set), the soft follower
+    (:class:`~mixed_traffic.physics.SoftFollowerParams`) or CACC (:class:`~mixed_traffic.physics.CACCParams`,
+    reading the leader's acceleration) driving every CAV.
 
     Bounds come from ``env.action_spec`` unless given; ``param_overrides`` replace model
     parameters (``make_classic_policy("idm", env, T=1.5)``); unknown names raise ValueError.
@@ -298,9 +322,15 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
         env_low, env_high = action_bounds(env)
         low = env_low if low is None else low
         high = env_high if high is None else high
-    return TensorDictModule(CarFollowingCAV(model, params, low, high, gap_max=gap_max),
-                            in_keys=[("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")], out_keys=["action"])
+    law = CarFollowingCAV(model, params, low, high, gap_max=gap_max)
+    in_keys = [("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")]
+    if law.reads_leader_accel:
+        if env is not None and LEADER_ACCEL_KEY not in env.observation_spec.keys(True, True):
+            raise ValueError(f"{model} reads the leader's acceleration {LEADER_ACCEL_KEY}, which this env does not "
+                             "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
+        in_keys.append(LEADER_ACCEL_KEY)
+    return TensorDictModule(law, in_keys=in_keys, out_keys=["action"])
 
 
 __all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
-           "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC"]
+           "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC", "LEADER_ACCEL_KEY"]

@@ -477,7 +477,8 @@ class SumoRingEnv(EnvBase):
         cav_acc = acc[:, ci]
         L = torch.tensor([[self.ring_length]], **f)
         j, cost = stage_terms(sc, vel, g, cav_acc, v_eq, self._v_ref)
-        cav = {"gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, [(i - 1) % sc.n_vehicles for i in ci]],
+        leaders = [(i - 1) % sc.n_vehicles for i in ci]
+        cav = {"gap": g[:, ci], "speed": vel[:, ci], "leader_speed": vel[:, leaders], "leader_accel": acc[:, leaders],
                "accel": cav_acc}
         speed_avg = None
         if sc.head:

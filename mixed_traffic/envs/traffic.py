@@ -52,9 +52,10 @@ def observation_dim(sc: TrafficScenario) -> int:
 
 def cav_keys(sc: TrafficScenario) -> tuple[str, ...]:
     """The ``("cav", ...)`` entries: head gap/speed with a head, the CAV's mean speed without;
+    ``leader_accel``: the leader's acceleration of the last step (what CACC receives over V2V);
     ``override`` (1.0 where SUMO's speed mode 95 changed the command) with ``sumo_safety``."""
     head = ("head_gap", "head_speed") if sc.head else ("speed_avg",)
-    return ("gap", "speed", "leader_speed", *head, "accel") + (("override",) if sc.sumo_safety else ())
+    return ("gap", "speed", "leader_speed", "leader_accel", *head, "accel") + (("override",) if sc.sumo_safety else ())
 
 
 def make_specs(sc: TrafficScenario, batch: tuple[int, ...], device=None, dtype=torch.float32) -> dict:
@@ -353,7 +354,8 @@ class TrafficEnv(EnvBase):
         sc = self.scenario
         cav_acc = self.acc[:, self._cav]
         ci = self._cav
-        cav = {"gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1], "accel": cav_acc}
+        cav = {"gap": gap[:, ci], "speed": self.vel[:, ci], "leader_speed": self.vel[:, ci - 1],
+               "leader_accel": self.acc[:, ci - 1], "accel": cav_acc}
         if sc.sumo_safety:
             cav["override"] = self._override
         speed_avg = None

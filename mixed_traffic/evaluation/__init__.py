@@ -62,7 +62,7 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
             except ValueError as e:
                 raise ConfigError("controller", f"'base': {e}",
                                   "base with an experiment that trains a residual (e.g. "
-                                  "experiment=ring_lagrangian_ppo_band_stop), or a classical controller (idm, ovm, soft)"
+                                  "experiment=ring_lagrangian_ppo_band_stop), or a classical controller (idm, ovm, soft, cacc)"
                                   ) from None
         else:
             factory = classic_factory(controller)

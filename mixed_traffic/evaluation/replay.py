@@ -4,7 +4,8 @@ On the ring the CAV's leader is the head, which tracks the profile's speed: what
 only through the humans behind the CAV, who are the head's own leaders around the ring, and only where
 the head comes close to them (after a stop of the head, or on a short ring). So one rollout records the
 head's speeds (:class:`~mixed_traffic.evaluation.harness.Trace`),
-and any follower law ``law(gap, speed, leader_speed) -> accel`` can then be re-driven behind them with
+and any follower law ``law(gap, speed, leader_speed) -> accel`` (CACC also reads the head's last
+acceleration) can then be re-driven behind them with
 the env's own actuator bounds and integration rule (:func:`mixed_traffic.physics.integrate`). The
 CAV-side metrics (gaps, steady speed RMSE, jerk) come out as the env computes them
 (:func:`~mixed_traffic.evaluation.harness.episode_metrics`), at a fraction of a rollout's cost and for a
@@ -109,7 +110,10 @@ def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: flo
 
     ``law(gap, speed, leader_speed)`` maps ``[episodes]`` tensors (float64) to commands, clipped to
     ``[low, high]`` as the env clips an action (a module in float32 can be replayed as it is, or after
-    ``.double()``). ``trace`` may hold several profiles' rows (:func:`stack_traces`).
+    ``.double()``). A law whose ``reads_leader_accel`` is true (CACC) is called as
+    ``law(gap, speed, leader_speed, leader_accel)`` with the head's acceleration of the last step, as the
+    env's ``("cav", "leader_accel")`` gives it (0 before the first step). ``trace`` may hold several
+    profiles' rows (:func:`stack_traces`).
     Returns per-row metrics named as :func:`~mixed_traffic.evaluation.harness.episode_metrics` names them:
     ``collision``, ``min_gap``, ``min_gap_after``, ``max_head_gap``, ``speed_rmse_steady``, ``mean_abs_jerk``,
     and the series ``gap``, ``accel``, ``speed``.
@@ -127,8 +131,12 @@ def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: flo
     x_cav, _, _ = _advance(v, (v0_after - v) / dt, dt, integration)
     gap = gap0_after - (x_head[:, 0] - x_cav)
     gaps, accels, speeds = [], [], []
+    # the head's acceleration of the last step: what ("cav", "leader_accel") holds when step k is decided
+    a_seen = torch.cat([torch.zeros_like(a_head[:, :1]), a_head[:, :-1]], 1)
+    reads_accel = bool(getattr(law, "reads_leader_accel", False))
     for k in range(vh.shape[1]):
-        a = law(gap, v, v_head[:, k]).to(f64).clamp(low, high)
+        a = law(gap, v, v_head[:, k], a_seen[:, k]) if reads_accel else law(gap, v, v_head[:, k])
+        a = a.to(f64).clamp(low, high)
         x, v, executed = _advance(v, a, dt, integration)
         gap = gap + x_head[:, k] - x
         gaps.append(gap), accels.append(executed), speeds.append(v)
