@@ -137,7 +137,7 @@ class SpeedLawConfig:
     ``beyond_speed``.
     """
 
-    base: str | None = None  # "idm", "ovm" or "soft"; null: off
+    base: str | None = None  # "idm", "ovm", "soft" or "cacc"; null: off
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
     v_low: float = 10.0
     v_high: float = 16.0
@@ -199,7 +199,7 @@ class ResidualConfig:
     more braking than the actuator has, a residual cannot take part of the braking back.
     """
 
-    base: str = "idm"  # "idm", "ovm" or "soft" (mixed_traffic.controllers.classic)
+    base: str = "idm"  # "idm", "ovm", "soft" or "cacc" (mixed_traffic.controllers.classic)
     weight: float = 0.5
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))  # no "+" needed
     engage_seconds: float = 0.0

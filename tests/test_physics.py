@@ -430,3 +430,30 @@ def test_unsaturated_base_keeps_braking_beyond_the_bound_when_a_residual_softens
     clipped, a_sat = executed(True)
     assert raw < -3.5 and clipped == pytest.approx(-3.0)
     assert a_free == pytest.approx(-3.0) and a_sat == pytest.approx(-2.5)
+
+
+def test_a_residual_base_over_cacc_reads_the_leaders_acceleration_through_its_envelope():
+    """``experiment=ring_lagrangian_ppo_cacc``: the base is CACC inside the stopping envelope. It reads
+    ``("cav", "leader_accel")`` through the envelope (a braking head changes its command before the gap and
+    the speeds do), drives the ring without collision, and the envelope still caps it."""
+    from tensordict import TensorDict
+
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.controllers.classic import LEADER_ACCEL_KEY, reads_leader_accel
+    from mixed_traffic.training.builders import residual_base
+
+    env = make_env("ring", batch_size=4, seed=1, profile="random_steps",
+                   profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0})
+    base = residual_base(compose(["experiment=ring_lagrangian_ppo_cacc"]).transforms.residual, env)
+    assert LEADER_ACCEL_KEY in base.in_keys and reads_leader_accel(base.module)
+    td = env.rollout(1500, base)
+    assert not bool(td["next", "collision"].any())
+
+    def command(gap, leader_accel):
+        state = {("cav", "gap"): gap, ("cav", "speed"): 15.0, ("cav", "leader_speed"): 15.0,
+                 LEADER_ACCEL_KEY: leader_accel}
+        return float(base(TensorDict({k: torch.tensor([[v]]) for k, v in state.items()}, [1]))["action"])
+
+    assert command(30.0, -2.0) < command(30.0, 0.0) - 0.1  # the head's braking is fed forward
+    assert command(6.0, 2.0) == pytest.approx(command(6.0, 0.0))  # close behind, the envelope binds either way

@@ -38,6 +38,11 @@ _PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams, "cacc
 LEADER_ACCEL_KEY = ("cav", "leader_accel")  # the leader's acceleration of the last step (V2V), read by CACC
 
 
+def reads_leader_accel(law) -> bool:
+    """Whether ``law`` (a classical law or a wrapper of one) takes the leader's acceleration as a fourth input."""
+    return bool(getattr(law, "reads_leader_accel", False))
+
+
 class CarFollowingCAV(nn.Module):
     """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules; CACC also reads
     the leader's acceleration (``model(gap, v, v_leader, a_leader)``; :attr:`reads_leader_accel`)."""
@@ -110,9 +115,13 @@ class SpeedScheduledCAV(nn.Module):
         self.low, self.high = low, high
         self.v_low, self.v_high = float(v_low), float(v_high)
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+    @property
+    def reads_leader_accel(self) -> bool:
+        return reads_leader_accel(self.low) or reads_leader_accel(self.high)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
         w = ((self.v_high - speed) / (self.v_high - self.v_low)).clamp(0.0, 1.0)
-        return w * self.low(gap, speed, leader_speed) + (1.0 - w) * self.high(gap, speed, leader_speed)
+        return w * self.low(gap, speed, leader_speed, *extra) + (1.0 - w) * self.high(gap, speed, leader_speed, *extra)
 
 
 def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low: float,
@@ -128,8 +137,9 @@ def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low:
     >>> bool(env.rollout(50, pol)["next", "collision"].any())
     False
     """
+    in_keys = list(low.in_keys) + [k for k in high.in_keys if k not in low.in_keys]  # CACC adds leader_accel
     return TensorDictModule(SpeedScheduledCAV(low.module, high.module, v_low, v_high),
-                            in_keys=list(low.in_keys), out_keys=list(low.out_keys))
+                            in_keys=in_keys, out_keys=list(low.out_keys))
 
 
 class CatchUp(nn.Module):
@@ -158,8 +168,12 @@ class CatchUp(nn.Module):
             raise ValueError(f"catch_up.horizon = {horizon} is invalid; allowed: >= 0 (s)")
         self.law, self.accel, self.gaps, self.dv, self.horizon = law, float(accel), (g0, g1), float(dv), float(horizon)
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        a = self.law(gap, speed, leader_speed)
+    @property
+    def reads_leader_accel(self) -> bool:
+        return reads_leader_accel(self.law)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
+        a = self.law(gap, speed, leader_speed, *extra)
         g0, g1 = self.gaps
         closing = leader_speed - speed
         ahead = gap + self.horizon * closing.clamp_min(0.0)
@@ -211,18 +225,23 @@ class StoppingEnvelope(nn.Module):
                             leader_brake=self.leader_brake.to(speed))
         return upper.clamp_min(self.low)
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        return self.command_and_room(gap, speed, leader_speed)[0]
+    @property
+    def reads_leader_accel(self) -> bool:
+        return reads_leader_accel(self.law)
 
-    def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
-        """The command and :meth:`room`, from one evaluation of the law."""
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
+        return self.command_and_room(gap, speed, leader_speed, *extra)[0]
+
+    def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra):
+        """The command and :meth:`room`, from one evaluation of the law (``extra``: the law's further inputs,
+        CACC's leader acceleration)."""
         upper = self.bound(gap, speed, leader_speed)
-        command = torch.minimum(self.law(gap, speed, leader_speed), upper)
+        command = torch.minimum(self.law(gap, speed, leader_speed, *extra), upper)
         return command, upper - command
 
-    def room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+    def room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
         """``a_stop`` minus the command (m/s^2, >= 0; 0 where the envelope binds)."""
-        return self.command_and_room(gap, speed, leader_speed)[1]
+        return self.command_and_room(gap, speed, leader_speed, *extra)[1]
 
     def slack(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """The stopping rule's margin in metres: how much gap the car could still give up if it held its
@@ -246,8 +265,8 @@ class _EnvelopeRoom(nn.Module):
         super().__init__()
         self.envelope, self.with_slack = envelope, slack
 
-    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
-        command, room = self.envelope.command_and_room(gap, speed, leader_speed)
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra):
+        command, room = self.envelope.command_and_room(gap, speed, leader_speed, *extra)
         if not self.with_slack:
             return command, room
         slack = self.envelope.slack(gap, speed, leader_speed)
