@@ -39,6 +39,7 @@ def test_relative_accel_observes_the_leaders_last_acceleration():
     lead = b["next", "traffic", "accel"][..., 0] / 3.0  # the CAV (index 1) follows the head
     assert float(lead.abs().max()) > 0.1  # the sine head does accelerate
     assert torch.allclose(b["next", "observation"][..., 7], lead)
+    assert torch.equal(a["next", "cav", "leader_accel"][..., 0], b["next", "traffic", "accel"][..., 0])  # in m/s^2
     with pytest.raises(ValueError, match="observation"):
         make_env("ring_wave", batch_size=1, seed=0, observation="relative_accel")  # no head to follow
     # "relative_no_speed": the same features less the CAV's own speed

@@ -83,6 +83,8 @@ def test_classic_controllers_follow_without_collision():
         make_classic_policy("pid", env)
     with pytest.raises(ValueError, match=r"cacc parameter h = -1.0 is invalid; allowed: >= 0"):
         make_classic_policy("cacc", env, h=-1.0)
+    with pytest.raises(ValueError, match=r"reads the leader's acceleration .* which this env does not observe"):
+        make_classic_policy("cacc", make_env("platoon", seed=0))  # the DeeP-LCC platoon has no leader_accel
 
 
 def test_evaluate_a_classical_controller_is_deterministic():

@@ -51,6 +51,9 @@ def test_specs_match_torch_backend_and_check_env_specs():
         pos, gap = td["next", "traffic", "pos"][0], td["next", "traffic", "gap"][0]
         ring = (torch.roll(pos, 1, -1) - pos).remainder(313.65) - 5.0
         torch.testing.assert_close(gap, ring, atol=1e-3, rtol=0)
+        # the leader's acceleration (what CACC reads) is the leader's row of every vehicle's accelerations
+        leaders = [(i - 1) % env.scenario.n_vehicles for i in env.scenario.cav_indices]
+        torch.testing.assert_close(td["next", "cav", "leader_accel"], td["next", "traffic", "accel"][..., leaders])
     finally:
         env.close()
 

@@ -36,6 +36,7 @@ import dataclasses
 import torch
 from omegaconf import DictConfig, open_dict
 
+from mixed_traffic.controllers.classic import reads_leader_accel
 from mixed_traffic.evaluation.harness import Trace, follower_metrics
 from mixed_traffic.physics import integrate
 
@@ -133,7 +134,7 @@ def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: flo
     gaps, accels, speeds = [], [], []
     # the head's acceleration of the last step: what ("cav", "leader_accel") holds when step k is decided
     a_seen = torch.cat([torch.zeros_like(a_head[:, :1]), a_head[:, :-1]], 1)
-    reads_accel = bool(getattr(law, "reads_leader_accel", False))
+    reads_accel = reads_leader_accel(law)
     for k in range(vh.shape[1]):
         a = law(gap, v, v_head[:, k], a_seen[:, k]) if reads_accel else law(gap, v, v_head[:, k])
         a = a.to(f64).clamp(low, high)
