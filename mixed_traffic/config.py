@@ -141,6 +141,10 @@ class SpeedLawConfig:
     params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
     v_low: float = 10.0
     v_high: float = 16.0
+    # this law brakes at most max(brake_floor, |a_leader| + brake_margin) (m/s^2), the leader's acceleration
+    # read over V2V (mixed_traffic.controllers.classic.LeaderBrakeFloor); null: off
+    brake_floor: float | None = None
+    brake_margin: float = 0.3
 
 
 SPEED_LAWS = ("high_speed", "top_speed", "beyond_speed")  # ResidualConfig's SpeedLawConfig fields, in order

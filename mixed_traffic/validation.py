@@ -129,6 +129,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.base": OneOf(("idm", "ovm", "soft", "cacc")),
     **{f"transforms.residual.{key}.base": OneOf(("idm", "ovm", "soft", "cacc", None)) for key in SPEED_LAWS},
     **{f"transforms.residual.{key}.v_low": Real(0) for key in SPEED_LAWS},
+    **{f"transforms.residual.{key}.brake_floor": Real(0, lo_open=True, optional=True) for key in SPEED_LAWS},
+    **{f"transforms.residual.{key}.brake_margin": Real(0) for key in SPEED_LAWS},
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),

@@ -142,6 +142,57 @@ def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low:
                             in_keys=in_keys, out_keys=list(low.out_keys))
 
 
+class LeaderBrakeFloor(nn.Module):
+    """``max(law(gap, v, v_leader), min(-floor, a_leader - margin))``: a law that brakes at most ``floor``
+    (m/s^2) harder than needed to match its leader's braking plus ``margin``.
+
+    In a base scheduled by speed (:class:`SpeedScheduledCAV`) two laws can want different gaps at the same
+    speed: below 18 m/s the ring's base is an IDM that wants about 25 m, from 18 m/s band laws that let the
+    gap float down to 10 m. A leader that slows gently takes the car from one into the other in a gap the
+    second accepts, and the first brakes at up to 3 m/s^2 to open it within seconds (sine_wide,
+    docs/results.md). With the leader's acceleration received over V2V (``("cav", "leader_accel")``) the law
+    brakes no harder than ``max(floor, |a_leader| + margin)``, which opens the gap over a longer time behind
+    a gently slowing leader and leaves a leader that brakes hard (a stop, an emergency) the full answer. It
+    only ever raises the command, and the stopping envelope applied to the whole base afterwards
+    (:class:`StoppingEnvelope`) still caps it, so the base stays collision-free. TorchRL has no such term.
+    """
+
+    reads_leader_accel = True
+
+    def __init__(self, law: nn.Module, *, floor: float, margin: float):
+        super().__init__()
+        if not floor > 0.0:
+            raise ValueError(f"brake_floor = {floor} is invalid; allowed: > 0 (m/s^2)")
+        if not margin >= 0.0:
+            raise ValueError(f"brake_margin = {margin} is invalid; allowed: >= 0 (m/s^2)")
+        self.law, self.floor, self.margin = law, float(floor), float(margin)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
+                leader_accel: torch.Tensor | None = None) -> torch.Tensor:
+        if leader_accel is None:
+            raise ValueError("a brake floor reads the leader's acceleration: pass leader_accel")
+        a = self.law(gap, speed, leader_speed, leader_accel)
+        return torch.maximum(a, torch.clamp(leader_accel - self.margin, max=-self.floor))
+
+
+def leader_brake_floor_policy(policy: TensorDictModule, env, *, floor: float, margin: float) -> TensorDictModule:
+    """``policy`` (of :func:`make_classic_policy`) with :class:`LeaderBrakeFloor`, reading the leader's
+    acceleration as well.
+
+    >>> from mixed_traffic import make_env
+    >>> env = make_env("ring", batch_size=2, seed=0)
+    >>> pol = leader_brake_floor_policy(make_classic_policy("idm", env), env, floor=1.0, margin=0.3)
+    >>> bool(env.rollout(50, pol)["next", "collision"].any())
+    False
+    """
+    if LEADER_ACCEL_KEY not in env.observation_spec.keys(True, True):
+        raise ValueError(f"a brake floor reads the leader's acceleration {LEADER_ACCEL_KEY}, which this env does not "
+                         "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
+    keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
+    return TensorDictModule(LeaderBrakeFloor(policy.module, floor=floor, margin=margin), in_keys=keys,
+                            out_keys=list(policy.out_keys))
+
+
 class CatchUp(nn.Module):
     """``law + w (accel - law)^+``: the law lifted toward ``accel`` while its leader pulls away from a large gap.
 
@@ -352,4 +403,5 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
 
 
 __all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
-           "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC", "LEADER_ACCEL_KEY"]
+           "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC", "LEADER_ACCEL_KEY",
+           "LeaderBrakeFloor", "leader_brake_floor_policy", "reads_leader_accel"]

@@ -145,13 +145,15 @@ ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's ma
 
 def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=None, deploy: bool = True):
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
-    parameter: the model's own), joined by speed to ``high_speed``, ``top_speed`` and then ``beyond_speed`` when they are set,
+    parameter: the model's own), joined by speed to ``high_speed``, ``top_speed`` and then ``beyond_speed`` when they are set
+    (each with its ``brake_floor`` when set),
     lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum). ``deploy``: the base as evaluated or deployed; False, as it trains
     (without a ``catch_up`` whose ``when`` is ``deploy``)."""
     from mixed_traffic.controllers.classic import (
         catch_up_policy,
+        leader_brake_floor_policy,
         make_classic_policy,
         speed_scheduled_policy,
         stopping_envelope_policy,
@@ -167,7 +169,10 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     for key in SPEED_LAWS:
         node = rcfg.get(key)
         if node is not None and node.get("base") is not None:
-            base = speed_scheduled_policy(base, law(node), node.v_low, node.v_high)
+            high = law(node)
+            if node.get("brake_floor") is not None:
+                high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.get("brake_margin", 0.3))
+            base = speed_scheduled_policy(base, high, node.v_low, node.v_high)
     catch = rcfg.get("catch_up")
     if catch is not None and catch.get("accel") is not None and (deploy or catch.get("when", "always") == "always"):
         base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv,
