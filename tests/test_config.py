@@ -231,7 +231,8 @@ def test_scheduled_experiment_adds_the_high_speed_law_to_the_soft_base():
 
     sched, soft = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_scheduled", "ring_lagrangian_ppo_soft"))
     high = OmegaConf.to_container(sched.transforms.residual.high_speed)
-    assert high == {"base": "idm", "params": {"s0": 7.0, "v0": 60.0, "gap_max": 27.0}, "v_low": 10.0, "v_high": 16.0}
+    assert high == {"base": "idm", "params": {"s0": 7.0, "v0": 60.0, "gap_max": 27.0}, "v_low": 10.0, "v_high": 16.0,
+                    "brake_floor": None, "brake_margin": 0.3}
     assert soft.transforms.residual.high_speed.base is None  # off unless set
     assert sched.transforms.residual.params.kv_closing == 1.0 and sched.transforms.residual.saturate_base is False
     with open_dict(sched):
