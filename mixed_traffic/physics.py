@@ -85,7 +85,6 @@ class SoftFollowerParams:
     match_h_max: float = 0.0  # ... and its ceiling by this one: match_gap_max + match_h_max v (s)
 
 
-
 @dataclass(frozen=True)
 class CACCParams:
     """Cooperative adaptive cruise control: a constant-time-gap follower with the leader's acceleration
@@ -103,6 +102,7 @@ class CACCParams:
     s0: float = 9.357  # standstill gap of the spacing policy (m)
     h: float = 0.941  # time gap of the spacing policy (s)
     e_max: float = 32.95  # the gap error counts up to this much (m): a long gap is closed at a capped rate
+
 
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
 # setting of a local search (benchmarks/ring_soft_search.py, on the frontier's five cases with a tuning seed,
@@ -161,7 +161,6 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
 
 
-
 def cacc_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, ka: Num, kv: Num, ks: Num, s0: Num,
                h: Num, e_max: Num = math.inf, **_) -> Tensor:
     """``ka a_leader + kv (v_leader - v) + ks min(gap - (s0 + h v), e_max)``: the linear CACC law.
@@ -177,6 +176,7 @@ def cacc_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, ka
     """
     error = torch.clamp(gap - (s0 + h * v), max=e_max)
     return ka * a_leader + kv * (v_leader - v) + ks * error
+
 
 def params_as_tensors(params, shape, *, dtype=torch.float32, device=None) -> dict[str, Tensor]:
     """Expand a parameter dataclass to a dict of tensors of ``shape`` (per vehicle)."""

@@ -43,6 +43,13 @@ def reads_leader_accel(law) -> bool:
     return bool(getattr(law, "reads_leader_accel", False))
 
 
+def require_leader_accel(env, who: str) -> None:
+    """Raise, naming ``who``, when ``env`` does not observe :data:`LEADER_ACCEL_KEY`."""
+    if LEADER_ACCEL_KEY not in env.observation_spec.keys(True, True):
+        raise ValueError(f"{who} reads the leader's acceleration {LEADER_ACCEL_KEY}, which this env does not "
+                         "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
+
+
 class CarFollowingCAV(nn.Module):
     """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules; CACC also reads
     the leader's acceleration (``model(gap, v, v_leader, a_leader)``; :attr:`reads_leader_accel`)."""
@@ -185,9 +192,7 @@ def leader_brake_floor_policy(policy: TensorDictModule, env, *, floor: float, ma
     >>> bool(env.rollout(50, pol)["next", "collision"].any())
     False
     """
-    if LEADER_ACCEL_KEY not in env.observation_spec.keys(True, True):
-        raise ValueError(f"a brake floor reads the leader's acceleration {LEADER_ACCEL_KEY}, which this env does not "
-                         "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
+    require_leader_accel(env, "a brake floor")
     keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
     return TensorDictModule(LeaderBrakeFloor(policy.module, floor=floor, margin=margin), in_keys=keys,
                             out_keys=list(policy.out_keys))
@@ -395,13 +400,12 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
     law = CarFollowingCAV(model, params, low, high, gap_max=gap_max)
     in_keys = [("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")]
     if law.reads_leader_accel:
-        if env is not None and LEADER_ACCEL_KEY not in env.observation_spec.keys(True, True):
-            raise ValueError(f"{model} reads the leader's acceleration {LEADER_ACCEL_KEY}, which this env does not "
-                             "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
+        if env is not None:
+            require_leader_accel(env, model)
         in_keys.append(LEADER_ACCEL_KEY)
     return TensorDictModule(law, in_keys=in_keys, out_keys=["action"])
 
 
 __all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
            "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC", "LEADER_ACCEL_KEY",
-           "LeaderBrakeFloor", "leader_brake_floor_policy", "reads_leader_accel"]
+           "LeaderBrakeFloor", "leader_brake_floor_policy", "reads_leader_accel", "require_leader_accel"]

@@ -171,7 +171,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
         if node is not None and node.get("base") is not None:
             high = law(node)
             if node.get("brake_floor") is not None:
-                high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.get("brake_margin", 0.3))
+                high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.brake_margin)
             base = speed_scheduled_policy(base, high, node.v_low, node.v_high)
     catch = rcfg.get("catch_up")
     if catch is not None and catch.get("accel") is not None and (deploy or catch.get("when", "always") == "always"):
