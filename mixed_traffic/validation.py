@@ -293,6 +293,9 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     if pol is not None and "log_std_min" in pol and not pol.log_std_min <= pol.log_std_max:
         raise ConfigError("policy.log_std_min", f"{pol.log_std_min} > log_std_max {pol.log_std_max}",
                           "log_std_min <= log_std_max")
+    apg = OmegaConf.select(cfg, "policy.apg", default=None)
+    if apg is not None and is_real(apg.get("iterations")) and apg.get("average_last") is not None:
+        Int(0, apg.iterations)("policy.apg.average_last", apg.average_last)  # at most the steps it averages over
     return cfg
 
 

@@ -377,3 +377,22 @@ def test_wide_band_experiment_is_the_lift_experiment_with_a_law_beyond_the_train
     with open_dict(wide):
         wide.transforms.residual.beyond_speed, wide.name = lift.transforms.residual.beyond_speed, lift.name
     assert OmegaConf.to_container(wide) == OmegaConf.to_container(lift)
+
+
+def test_v2v_experiment_is_the_wide_band_with_a_brake_floor_and_a_longer_apg_average_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_v2v`` (the default) is the wide band's config with the IDM slot's braking
+    floored by the leader's (read over V2V) and the pre-training's weights averaged over 90 of its 100 steps."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+    from mixed_traffic.validation import ConfigError, validate_config
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_v2v"
+    v2v, wide = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_v2v", "ring_lagrangian_ppo_wide_band"))
+    validate_config(v2v)
+    assert v2v.transforms.residual.high_speed.brake_floor == 1.0 and v2v.transforms.residual.high_speed.brake_margin == 0.3
+    assert v2v.policy.apg.average_last == 90 < v2v.policy.apg.iterations == 100
+    with pytest.raises(ConfigError, match=r"policy\.apg\.average_last"):  # more steps than the pre-training has
+        validate_config(compose(["experiment=ring_lagrangian_ppo_v2v", "policy.apg.average_last=101"]))
+    with open_dict(v2v):
+        v2v.transforms.residual.high_speed.brake_floor = wide.transforms.residual.high_speed.brake_floor
+        v2v.policy.apg.average_last, v2v.name = wide.policy.apg.average_last, wide.name
+    assert OmegaConf.to_container(v2v) == OmegaConf.to_container(wide)
