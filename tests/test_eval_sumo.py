@@ -54,6 +54,22 @@ def test_sumo_report_matches_torch_and_safety_layer_holds():
     assert ps["metrics"]["min_gap"]["min"] == pytest.approx(pt["metrics"]["min_gap"]["min"], abs=0.3)
 
 
+def test_sumo_evaluates_the_deployed_chain_as_torch_does():
+    """The default's chain on SUMO is the one the torch evaluation runs: deployed (the drive-off lift and the
+    envelope fade of ``deploy`` on) and without the training-only jerk price, so the return, the jerk and the
+    gaps of the same episode agree across the backends (the residual at zero: the classical base drives)."""
+    cfg = compose(["experiment=ring_lagrangian_ppo_v2v", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    assert "jerk_penalty" in cfg.transforms.chain and cfg.transforms.residual.catch_up.when == "deploy"
+    zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])
+    kw = dict(policy_factory=lambda env: zero, profiles=["random_steps"], episodes=1, seed=7, episode_seconds=30.0)
+    sumo, _ = evaluate_on_sumo(cfg, workers=0, **kw)
+    torch_rep, _ = evaluate_on_torch_seeds(cfg, **kw)
+    ps, pt = sumo["profiles"]["random_steps"]["metrics"], torch_rep["profiles"]["random_steps"]["metrics"]
+    assert ps["return"]["mean"] == pytest.approx(pt["return"]["mean"], rel=1e-3)
+    assert ps["mean_abs_jerk"]["mean"] == pytest.approx(pt["mean_abs_jerk"]["mean"], rel=0.02)
+    assert ps["min_gap"]["min"] == pytest.approx(pt["min_gap"]["min"], abs=0.05)
+
+
 def test_full_throttle_collides_without_the_safety_layer():
     """Control for the test above (torch backend, cheap): the policy is unsafe on its own."""
     cfg = compose(["experiment=ring_lagrangian_ppo", "transforms.chain=[non_negative_reward]"])

@@ -397,6 +397,28 @@ def test_hold_seconds_leaves_a_long_start_to_the_command_then_pushes():
         SafetyLayer(hold_seconds=-1.0)
 
 
+def test_hold_seconds_behind_a_batch_of_one_row_envs():
+    """Behind a ``SerialEnv`` / ``ParallelEnv`` of one-row rings (batch ``[workers, 1]``, as the SUMO evaluation
+    builds it) the held start executes each worker's command with the action's shape, as the one-row env does."""
+    from functools import partial
+
+    from torchrl.envs import SerialEnv
+
+    def layer():
+        return SafetyLayer(s_min=5.0, s_max=38.0, hold_seconds=5.0)
+
+    base = SerialEnv(2, [partial(make_env, "ring", batch_size=1, seed=s) for s in (0, 1)])
+    base.scenario, base.dt = make_env("ring", batch_size=1, seed=0).scenario, 0.1
+    env = TransformedEnv(base, layer())
+    td = env.rollout(60, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
+    assert td["action"].shape == (2, 1, 60, 1)  # [workers, 1, time, CAVs]
+    a = td["next", "cav", "accel"][:, 0, :, 0]
+    assert float(a[:, :50].abs().max()) < 1e-4 and torch.allclose(a[:, 55], torch.tensor(3.0), atol=1e-4)
+    one = TransformedEnv(make_env("ring", batch_size=1, seed=1), layer())
+    alone = one.rollout(60, lambda td: td.set("action", torch.zeros_like(one.action_spec.low)))
+    assert torch.allclose(a[1], alone["next", "cav", "accel"][0, :, 0], atol=1e-5)
+
+
 def test_ramp_beyond_s_max_closes_a_long_start_with_bounded_jerk():
     """``beyond_s_max="ramp"``: from the 73 m start a zero command is pushed with an acceleration that
     rises by ramp_jerk * dt per step (no full-throttle step), and the gap is brought inside s_max."""

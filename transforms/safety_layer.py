@@ -473,9 +473,9 @@ class SafetyLayer(Transform):
         return tensordict
 
     def _hold_mask(self, tensordict: TensorDictBase) -> Tensor | None:
-        """Rows (``[B, 1]``) still inside ``hold_seconds``; ``None`` when it is 0, ``beyond_s_max`` holds
-        anyway or no row is inside any more (past the first seconds: ``safe_action`` then skips the
-        held bound, which it would compute for nothing)."""
+        """Rows (``[*batch, 1]``, e.g. ``[B, 1]``, or ``[workers, 1, 1]`` behind a ``ParallelEnv``) still inside
+        ``hold_seconds``; ``None`` when it is 0, ``beyond_s_max`` holds anyway or no row is inside any more
+        (past the first seconds: ``safe_action`` then skips the held bound, which it would compute for nothing)."""
         if self.hold_seconds == 0 or self.beyond_s_max == "hold":
             return None
         time = tensordict.get(self.time_key, None)
@@ -483,7 +483,8 @@ class SafetyLayer(Transform):
             raise KeyError(f"SafetyLayer: hold_seconds={self.hold_seconds} reads the episode time, but "
                            f"{self.time_key!r} is not in the tensordict; allowed: an env that reports it, or "
                            "hold_seconds=0")
-        mask = time.reshape(time.shape[0], -1)[:, :1] < self.hold_seconds
+        batch = tensordict.batch_size
+        mask = time.reshape(*batch, -1)[..., :1] < self.hold_seconds
         return mask if bool(mask.any()) else None
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

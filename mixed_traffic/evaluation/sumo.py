@@ -6,10 +6,10 @@
 >>> report, traces = evaluate_on_sumo(cfg, policy_factory=policy_factory_from_state(cfg, state),
 ...                                   profiles=["random_steps"], episodes=2, seed=1000)  # doctest: +SKIP
 
-The env is the training env of ``cfg`` with its base swapped: the same
-``cfg.transforms.chain`` (built by the registry of
-:mod:`mixed_traffic.training.builders`, then ``RewardSum`` and ``StepCounter``, exactly as
-``make_transformed_env``) around a ``ParallelEnv`` of ``workers`` SUMO rings
+The env is the torch evaluation's env of ``cfg`` with its base swapped: the same deployed
+``cfg.transforms.chain`` less the training-only terms (``chain_transforms(cfg, base,
+without=TRAINING_ONLY, deploy=True)`` of :mod:`mixed_traffic.training.builders`, exactly as
+``harness.run_profile`` builds it) around a ``ParallelEnv`` of ``workers`` SUMO rings
 (``make_env("ring", backend="sumo")``, speed mode 0 unless ``sumo_safety=True``: SUMO executes
 the action the transforms, e.g. the ``SafetyLayer``, hand it).
 
@@ -41,13 +41,13 @@ import math
 
 import torch
 from omegaconf import DictConfig
-from torchrl.envs import Compose, ParallelEnv, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mixed_traffic.evaluation import harness
 from mixed_traffic.evaluation.harness import episode_metrics, episode_seeds, eval_env_overrides
 from mixed_traffic.scenarios import get_scenario
-from mixed_traffic.training.builders import TRANSFORMS, check_chain, env_kwargs
+from mixed_traffic.training.builders import TRAINING_ONLY, chain_transforms, check_chain, env_kwargs
 
 DEFAULT_EPISODE_SECONDS = 120.0
 SUMO_ONLY = ("sumo_safety", "sigma", "net_file", "run_dir", "sumo_args", "netconvert")
@@ -92,9 +92,8 @@ def make_sumo_eval_env(cfg: DictConfig, seeds: list[int], *, sumo_safety: bool =
         base = ParallelEnv(len(seeds), fns, serial_for_single=False)
         sc = dataclasses.replace(_scenario(kw), sumo_safety=bool(sumo_safety))
         base.scenario, base.dt, base.J_max = sc, sc.dt, sc.J_max
-    ts = [TRANSFORMS[name](cfg.transforms, base) for name in cfg.transforms.chain]
-    ts += [RewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
-    return TransformedEnv(base, Compose(*ts))
+    # as the torch evaluation builds it (harness.run_profile): the deployed chain, less the training-only terms
+    return TransformedEnv(base, chain_transforms(cfg, base, without=TRAINING_ONLY, deploy=True))
 
 
 def _scenario(kw: dict):

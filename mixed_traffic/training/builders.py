@@ -276,10 +276,17 @@ def make_transformed_env(cfg: DictConfig, *, num_envs: int, seed: int, without: 
     check_chain(cfg.transforms.chain)
     base: EnvBase = make_env(cfg.env.scenario, backend=cfg.env.backend, batch_size=num_envs, seed=seed,
                              device=cfg.device, **env_kwargs(cfg.env, **env_overrides))
+    return TransformedEnv(base, chain_transforms(cfg, base, without=without, deploy=deploy))
+
+
+def chain_transforms(cfg: DictConfig, base: EnvBase, *, without: tuple[str, ...] = (), deploy: bool = False) -> Compose:
+    """``cfg.transforms.chain`` less ``without``, built for ``base`` (``deploy`` as in :func:`make_transformed_env`),
+    then ``EpisodeRewardSum`` and ``StepCounter``: what :func:`make_transformed_env` wraps its env in, and what the
+    SUMO evaluation wraps its ``ParallelEnv`` of SUMO rings in, so both evaluate the same chain."""
     ts = [TRANSFORMS[name](cfg.transforms, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
           for name in cfg.transforms.chain if name not in without]
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
-    return TransformedEnv(base, Compose(*ts))
+    return Compose(*ts)
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
