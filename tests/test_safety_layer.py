@@ -408,7 +408,8 @@ def test_hold_seconds_behind_a_batch_of_one_row_envs():
         return SafetyLayer(s_min=5.0, s_max=38.0, hold_seconds=5.0)
 
     base = SerialEnv(2, [partial(make_env, "ring", batch_size=1, seed=s) for s in (0, 1)])
-    base.scenario, base.dt = make_env("ring", batch_size=1, seed=0).scenario, 0.1
+    sc = make_env("ring", batch_size=1, seed=0).scenario
+    base.scenario, base.dt = sc, sc.dt
     env = TransformedEnv(base, layer())
     td = env.rollout(60, lambda td: td.set("action", torch.zeros_like(env.action_spec.low)))
     assert td["action"].shape == (2, 1, 60, 1)  # [workers, 1, time, CAVs]
