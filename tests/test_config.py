@@ -188,7 +188,7 @@ def test_installed_script_rejects_a_misspelt_key(tmp_path):
 
 
 def test_small_budget_keeps_the_main_jobs_apg_settings_valid():
-    """``MT_SMALL_BUDGET=1 mt-main`` shrinks APG to 3 steps; the default's ``average_last`` (50)
+    """``MT_SMALL_BUDGET=1 mt-main`` shrinks APG to 3 steps; the default's ``average_last`` (90)
     shrinks with it instead of failing APG's check after the run has started."""
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT, apply_small_budget
 

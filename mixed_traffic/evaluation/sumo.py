@@ -64,13 +64,15 @@ def eval_config(cfg: DictConfig, episode_seconds: float | None = None) -> DictCo
 
 def make_sumo_eval_env(cfg: DictConfig, seeds: list[int], *, sumo_safety: bool = False, in_process: bool = False,
                        **env_overrides) -> TransformedEnv:
-    """``cfg``'s transform chain around ``ParallelEnv(len(seeds))`` of SUMO rings, worker ``w`` seeded ``seeds[w]``.
+    """``cfg``'s deployed transform chain, less the training-only terms, around ``ParallelEnv(len(seeds))`` of
+    SUMO rings, worker ``w`` seeded ``seeds[w]``.
 
     ``in_process=True`` (one seed only): the SUMO env itself, in this process, no worker
     (libsumo allows one live simulation per process).
 
-    Mirrors :func:`mixed_traffic.training.builders.make_transformed_env` (which builds the
-    base env itself with ``batch_size=num_envs``, impossible for SUMO). The transforms read
+    The chain is :func:`mixed_traffic.training.builders.chain_transforms`, as the torch evaluation's
+    ``make_transformed_env(..., deploy=True)`` builds it (which builds its base env itself with
+    ``batch_size=num_envs``, impossible for SUMO). The transforms read
     ``dt``, ``J_max`` and ``scenario`` from the parent env; a ``ParallelEnv`` does not have
     them, so they are set on it from the same scenario the workers build.
     """
