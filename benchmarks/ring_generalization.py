@@ -140,7 +140,9 @@ def case_names(requested: list[str], all_cases: dict) -> list[str]:
     return list(dict.fromkeys(n for c in requested for n in GROUPS.get(c, (c,))))
 
 
-def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int):
+def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int, v2v=(0.0, 0.0)):
+    """The run's config set to evaluate ``case``; ``v2v``: ``(eval.v2v_delay, eval.v2v_loss)``, the V2V link
+    every controller of the case receives its leader's acceleration over."""
     from omegaconf import OmegaConf, open_dict
 
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
@@ -150,6 +152,7 @@ def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int
         cfg.eval.episodes = episodes
         cfg.eval.episode_seconds = seconds
         cfg.eval.seed = seed
+        cfg.eval.v2v_delay, cfg.eval.v2v_loss = float(v2v[0]), float(v2v[1])
         for k, v in case.get("eval", {}).items():
             cfg.eval[k] = v
         for k, v in case.get("env", {}).items():
@@ -204,6 +207,10 @@ def main(argv=None) -> dict:
                         "base: the run's residual base alone)")
     p.add_argument("--baselines-with-layer", action="store_true",
                    help="run every baseline again behind the run's safety layer (rows '<name> + layer')")
+    p.add_argument("--v2v-delay", type=float, default=0.0, metavar="S",
+                   help="every controller receives its leader's acceleration S seconds late (eval.v2v_delay)")
+    p.add_argument("--v2v-loss", type=float, default=0.0, metavar="P",
+                   help="... and loses each message with probability P, holding the last one (eval.v2v_loss)")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -229,21 +236,28 @@ def main(argv=None) -> dict:
         policy_factory_from_state,
         residual_base_factory,
     )
+    from mixed_traffic.validation import ConfigError, validate_config
 
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
+    v2v = (a.v2v_delay, a.v2v_loss)
+    try:
+        validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v))
+    except ConfigError as e:
+        flag = {"eval.v2v_delay": "--v2v-delay", "eval.v2v_loss": "--v2v-loss"}.get(e.field, e.field)
+        raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}
     for name in names:
         case = all_cases[name]
-        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v)
         rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
         results[name] = {"seconds": float(cfg.eval.episode_seconds), "policy": row(rep, prof),
                          "policy_without_layer": no_layer_rows(rep, prof)}
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
-            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
+            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
@@ -269,6 +283,7 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
                                                          "seconds": a.seconds, "seed": a.seed,
+                                                         "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

@@ -673,6 +673,12 @@ class EvalConfig:
     # executed), from the standard start and from each of these start spacings (m)
     without_layer: bool = True
     close_starts: list[float] = field(default_factory=lambda: [8.0, 15.0])
+    # the V2V link the CAVs receive their leader's acceleration over (transforms.V2VChannel, first in the
+    # evaluated chain when either is > 0): every message late by v2v_delay seconds (a multiple of the env's
+    # step), each lost with probability v2v_loss (the last one received is held); CACC and the residual
+    # base's brake_floor read it, the gap and the speeds are measured on board and stay exact
+    v2v_delay: float = 0.0
+    v2v_loss: float = 0.0
 
 
 # ----------------------------------------------------------------------------- top level

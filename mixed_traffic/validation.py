@@ -207,6 +207,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "eval.warmup_seconds": Real(0),
     "eval.plot_episode": Int(0),
     "eval.intervention_bar": Real(0, 1),
+    "eval.v2v_delay": Real(0, 10),
+    "eval.v2v_loss": Real(0, 1),
 }
 
 _MISSING = object()
@@ -296,7 +298,32 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     apg = OmegaConf.select(cfg, "policy.apg", default=None)
     if apg is not None and is_real(apg.get("iterations")) and apg.get("average_last") is not None:
         Int(0, apg.iterations)("policy.apg.average_last", apg.average_last)  # at most the steps it averages over
+    delay = OmegaConf.select(cfg, "eval.v2v_delay", default=0.0)
+    if is_real(delay) and delay > 0:
+        dt = _env_dt(cfg)
+        if dt is not None:
+            v2v_delay_steps(delay, dt)
     return cfg
+
+
+def _env_dt(cfg: DictConfig) -> float | None:
+    """The step of ``cfg.env``'s scenario (s), or None where it has none to read (no env, another family)."""
+    from mixed_traffic.scenarios import PRESETS, get_scenario
+    from mixed_traffic.training.builders import env_kwargs
+
+    env = cfg.get("env")
+    if env is None or OmegaConf.select(cfg, "env.scenario", default=None) not in PRESETS:
+        return None
+    return float(get_scenario(env.scenario, **env_kwargs(env)).dt)
+
+
+def v2v_delay_steps(delay: float, dt: float) -> int:
+    """``eval.v2v_delay`` (s) in steps of ``dt``; a delay between steps is a :class:`ConfigError`."""
+    steps = round(delay / dt)
+    if abs(steps * dt - delay) > 1e-6 * max(1.0, delay):
+        raise ConfigError("eval.v2v_delay", f"{delay!r} is not a whole number of steps",
+                          f"a multiple of the env's step dt = {dt:g} s")
+    return steps
 
 
 def check_env_config(cfg: DictConfig, **extra) -> None:
@@ -446,5 +473,5 @@ def run_cli(hydra_main: Callable, prog: str, argv: list[str] | None = None) -> N
         sys.argv = saved
 
 
-__all__ = ["ConfigError", "Real", "Int", "OneOf", "CONFIG_RULES", "validate_config", "check_env_config",
+__all__ = ["ConfigError", "Real", "Int", "OneOf", "CONFIG_RULES", "validate_config", "check_env_config", "v2v_delay_steps",
            "check_writable_dir", "check_argv", "guarded", "run_cli", "known_experiments", "DEBUG_ENV"]

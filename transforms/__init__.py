@@ -17,6 +17,7 @@ from transforms.residual import ResidualAction
 from transforms.rewards import NonNegativeReward, ProfileNormalisedReward, QuadraticReward
 from transforms.safety_layer import SafetyLayer
 from transforms.set_point import SetPointAction
+from transforms.v2v_channel import V2VChannel
 
 __all__ = [
     "SafetyLayer",
@@ -36,4 +37,5 @@ __all__ = [
     "BarrierForce",
     "ConflictCost",
     "CounterfactualReward",
+    "V2VChannel",
 ]

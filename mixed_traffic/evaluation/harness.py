@@ -361,7 +361,9 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     seed = int(cfg.eval.seed if seed is None else seed)
     report = {"episodes_per_profile": episodes, "eval_seed": seed, "episode_seeds": episode_seeds(seed, episodes),
               "profiles": {},
-              "sumo_safety": bool(env_kwargs(cfg.env).get("sumo_safety", False))}
+              "sumo_safety": bool(env_kwargs(cfg.env).get("sumo_safety", False)),
+              # the V2V link the leader's acceleration was received over (0, 0: the perfect link)
+              "v2v": {"delay": float(cfg.eval.get("v2v_delay", 0.0)), "loss": float(cfg.eval.get("v2v_loss", 0.0))}}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)

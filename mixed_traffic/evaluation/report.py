@@ -63,6 +63,10 @@ def markdown(report: dict, title: str) -> str:
         lines += [f"policy: `{report['policy']}`", ""]
     lines += [f"{report['episodes_per_profile']} deterministic episodes per profile, evaluation seed "
               f"{report['eval_seed']}; mean ± std over episodes (collisions: total).", ""]
+    v2v = report.get("v2v") or {}
+    if v2v.get("delay") or v2v.get("loss"):
+        lines += [f"V2V link: the leader's acceleration received {v2v['delay']:g} s late, {100 * v2v['loss']:g} % of "
+                  "the messages lost (the last one received held).", ""]
     # the speed-mode-95 override rate only where the env ran with sumo_safety
     cols = MD_COLUMNS if report.get("sumo_safety") else tuple(c for c in MD_COLUMNS if c[0] != "override_rate")
     lines.append("| profile | " + " | ".join(c[1] for c in cols) + " |")

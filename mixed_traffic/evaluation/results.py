@@ -3,6 +3,7 @@
     python -m mixed_traffic.evaluation.results outputs/results/*/      # prints a markdown table
     python -m mixed_traffic.evaluation.results --itself RUN... --baseline IDM_RUN   # with / without the layer
     python -m mixed_traffic.evaluation.results --paired RUN... --baseline IDM_RUN   # episode by episode
+    python -m mixed_traffic.evaluation.results --generalization GEN_DIR...       # held-out cases over seeds
 
 Each directory holds ``eval/report.json`` (from ``mt-main``, ``mt-train eval.after_train=true``
 or ``mt-eval``) and, for trained policies, ``summary.json``; ``--itself`` and ``--paired`` also
@@ -168,6 +169,80 @@ def itself_table(run_dirs, baseline_dir=None) -> str:
     return "\n".join(lines)
 
 
+def _generalization(d) -> dict:
+    p = Path(d)
+    if p.is_dir():
+        p = p / "generalization.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"--generalization: {str(d)!r} holds no generalization.json; allowed: the --out "
+                                "directory of benchmarks/ring_generalization.py, or the file")
+    return json.loads(p.read_text())
+
+
+def _span(values, fmt: str, unit: str = "") -> str:
+    lo, hi = min(values), max(values)
+    return f"{lo:{fmt}}{unit}" if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}..{hi:{fmt}}{unit}"
+
+
+def generalization_table(dirs) -> str:
+    """Per case, over several runs (seeds) of ``benchmarks/ring_generalization.py`` on the same episodes.
+
+    Columns, the policy without its layer: the gaps after the warm-up over every start and run (smallest gap,
+    largest head gap); collisions with and without the layer; its jerk and return against IDM-as-CAV's (the
+    ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; the layer's
+    largest share of steps (with it); then the jerk against IDM-as-CAV's of every other baseline all the runs
+    evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
+    cases were evaluated on other episodes or over another V2V link.
+    """
+    runs = [(str(d), _generalization(d)) for d in dirs]
+    for _, g in runs:  # written before the link was an option: the perfect link
+        g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
+    ref_dir, ref = runs[0]
+    for d, g in runs[1:]:
+        for key in ("seed", "episodes", "seconds", "v2v"):
+            if g.get(key) != ref.get(key):
+                raise ValueError(f"--generalization: {key} {g.get(key)!r} of {d!r} differs from {ref.get(key)!r} of "
+                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes and link")
+    cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
+    if not cases:
+        raise ValueError("--generalization: the runs have no case in common")
+    skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed")
+    # the other baselines every run evaluated (e.g. cacc on one seed only: left out)
+    others = [k for k in ref["results"][cases[0]] if k not in skip
+              and all(k in g["results"][c] for _, g in runs for c in cases)]
+    link = ref["v2v"]
+    head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's", "layer's share",
+            *(f"{o}: jerk − IDM's" for o in others)]
+    lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
+             f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
+                                 if link["delay"] or link["loss"] else "") + ".", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in cases:
+        coll, gmin, gmax, jerk, rmse, ret, layer = 0, math.inf, -math.inf, [], [], [], []
+        other = {o: [] for o in others}
+        for _, g in runs:
+            x = g["results"][c]
+            if "idm" not in x:
+                raise ValueError(f"--generalization: case {c!r} has no idm baseline; allowed: runs made with "
+                                 "--baselines idm (IDM-as-CAV, the reference of the bars)")
+            free = x["policy_without_layer"]
+            std = next(k for k in free if k.startswith("standard"))
+            coll += x["policy"]["collisions"] + sum(v["collisions"] for v in free.values())
+            gmin = min(gmin, *(v["min_gap_after"] for v in free.values()))
+            gmax = max(gmax, *(v["max_head_gap"] for v in free.values()))
+            idm = x["idm"]
+            jerk.append(100.0 * (free[std]["jerk"] / idm["jerk"] - 1.0))
+            rmse.append(free[std]["steady_rmse"])
+            ret.append(free[std]["return"] - idm["return"])
+            layer.append(100.0 * x["policy"]["intervention_rate"])
+            for o in others:
+                other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
+        cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f"),
+                 _span(ret, "+.1f"), f"{max(layer):.1f} %", *(_span(v, "+.1f", " %") for v in other.values())]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> str:
     """Print a table of run directories' reports (``python -m mixed_traffic.evaluation.results -h``)."""
     import argparse
@@ -181,6 +256,9 @@ def main(argv=None) -> str:
                       help="the policy with and without its layer, per profile and start")
     mode.add_argument("--paired", action="store_true",
                       help="episode-by-episode differences against --baseline, +- standard error")
+    mode.add_argument("--generalization", action="store_true",
+                      help="runs are --out directories of benchmarks/ring_generalization.py (one per seed): per case, "
+                           "the ranges over them")
     p.add_argument("--baseline", default=None, help="a report to compare with (e.g. IDM-as-CAV's run directory)")
     a = p.parse_args(argv)
     if a.paired and a.baseline is None:
@@ -189,6 +267,11 @@ def main(argv=None) -> str:
         out = itself_table(a.runs, a.baseline)
     elif a.paired:
         out = paired_table(a.runs, a.baseline)
+    elif a.generalization:
+        try:
+            out = generalization_table(a.runs)
+        except (ValueError, FileNotFoundError) as e:
+            p.error(str(e))
     else:
         out = profile_table(a.runs) if a.profiles else table(a.runs)
     print(out)

@@ -285,8 +285,25 @@ def chain_transforms(cfg: DictConfig, base: EnvBase, *, without: tuple[str, ...]
     SUMO evaluation wraps its ``ParallelEnv`` of SUMO rings in, so both evaluate the same chain."""
     ts = [TRANSFORMS[name](cfg.transforms, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
           for name in cfg.transforms.chain if name not in without]
+    channel = eval_v2v_channel(cfg, base) if deploy else None
+    if channel is not None:
+        ts.insert(0, channel)
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return Compose(*ts)
+
+
+def eval_v2v_channel(cfg: DictConfig, base: EnvBase):
+    """The evaluation's V2V link (``eval.v2v_delay`` s, ``eval.v2v_loss``) as a :class:`transforms.V2VChannel`
+    seeded by ``eval.seed``, or None for the perfect link (both 0, or no ``eval`` node)."""
+    from mixed_traffic.validation import Real, v2v_delay_steps
+    from transforms import V2VChannel
+
+    e = cfg.get("eval")
+    delay, loss = (0.0, 0.0) if e is None else (float(e.get("v2v_delay", 0.0)), float(e.get("v2v_loss", 0.0)))
+    if delay == 0.0 and loss == 0.0:
+        return None
+    Real(0, 1)("eval.v2v_loss", loss)
+    return V2VChannel(delay_steps=v2v_delay_steps(delay, float(base.scenario.dt)), loss=loss, seed=int(e.seed))
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
