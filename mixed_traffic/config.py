@@ -115,6 +115,21 @@ class InterventionCostConfig:
 
 
 @dataclass
+class V2VChannelConfig:
+    """``v2v_channel`` in the chain: the V2V link the policy trains over (``transforms.V2VChannel``).
+
+    Every message of the leader's acceleration arrives ``delay`` seconds late (a multiple of the env's step)
+    and is lost with probability ``loss``, the last one received held. Training only, like ``jerk_penalty``:
+    the evaluation's link is ``eval.v2v_delay`` / ``eval.v2v_loss`` (perfect by default). The loss draws are
+    seeded by ``seed`` plus the env's own seed, so every worker draws its own and a run repeats under its seed.
+    """
+
+    delay: float = 0.0  # s
+    loss: float = 0.0
+    seed: int = 0
+
+
+@dataclass
 class JerkLimitConfig:
     """``jerk_limit`` in the chain: the command moves at most ``max_jerk * dt`` from the current acceleration."""
 
@@ -363,6 +378,7 @@ class TransformsConfig:
     residual_nnmpc: ResidualNNMPCConfig = field(default_factory=ResidualNNMPCConfig)
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     jerk_limit: JerkLimitConfig = field(default_factory=JerkLimitConfig)
+    v2v_channel: V2VChannelConfig = field(default_factory=V2VChannelConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)
     counterfactual_reward: CounterfactualRewardConfig = field(default_factory=CounterfactualRewardConfig)

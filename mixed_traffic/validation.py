@@ -209,6 +209,9 @@ CONFIG_RULES: dict[str, Callable] = {
     "eval.intervention_bar": Real(0, 1),
     "eval.v2v_delay": Real(0, 10),
     "eval.v2v_loss": Real(0, 1),
+    "transforms.v2v_channel.delay": Real(0, 10),
+    "transforms.v2v_channel.loss": Real(0, 1),
+    "transforms.v2v_channel.seed": Int(0),
 }
 
 _MISSING = object()
@@ -298,11 +301,12 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     apg = OmegaConf.select(cfg, "policy.apg", default=None)
     if apg is not None and is_real(apg.get("iterations")) and apg.get("average_last") is not None:
         Int(0, apg.iterations)("policy.apg.average_last", apg.average_last)  # at most the steps it averages over
-    delay = OmegaConf.select(cfg, "eval.v2v_delay", default=0.0)
-    if is_real(delay) and delay > 0:
-        dt = _env_dt(cfg)
-        if dt is not None:
-            v2v_delay_steps(delay, dt)
+    for name in ("eval.v2v_delay", "transforms.v2v_channel.delay"):
+        delay = OmegaConf.select(cfg, name, default=0.0)
+        if is_real(delay) and delay > 0:
+            dt = _env_dt(cfg)
+            if dt is not None:
+                v2v_delay_steps(delay, dt, name)
     return cfg
 
 
@@ -317,11 +321,11 @@ def _env_dt(cfg: DictConfig) -> float | None:
     return float(get_scenario(env.scenario, **env_kwargs(env)).dt)
 
 
-def v2v_delay_steps(delay: float, dt: float) -> int:
-    """``eval.v2v_delay`` (s) in steps of ``dt``; a delay between steps is a :class:`ConfigError`."""
+def v2v_delay_steps(delay: float, dt: float, name: str = "eval.v2v_delay") -> int:
+    """A V2V delay (s; the config field ``name``) in steps of ``dt``; a delay between steps is a :class:`ConfigError`."""
     steps = round(delay / dt)
     if abs(steps * dt - delay) > 1e-6 * max(1.0, delay):
-        raise ConfigError("eval.v2v_delay", f"{delay!r} is not a whole number of steps",
+        raise ConfigError(name, f"{delay!r} is not a whole number of steps",
                           f"a multiple of the env's step dt = {dt:g} s")
     return steps
 

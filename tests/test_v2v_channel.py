@@ -121,3 +121,55 @@ def test_the_report_names_the_link_it_was_evaluated_over(tmp_path):
     rep = evaluate_and_report(cfg, tmp_path)
     assert rep["v2v"] == {"delay": 0.3, "loss": 0.25}
     assert "received 0.3 s late, 25 % of the messages lost" in Path(rep["paths"]["md"]).read_text()
+
+
+TRAIN_LINK = ["experiment=ring_lagrangian_ppo", "transforms.chain=[non_negative_reward,safety_layer,v2v_channel]",
+              "transforms.v2v_channel.delay=0.3", "transforms.v2v_channel.loss=0.2"]
+
+
+def test_a_run_trains_over_its_own_link_and_is_evaluated_over_eval_s():
+    from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
+
+    cfg = validate_config(compose(TRAIN_LINK))
+    env = make_transformed_env(cfg, num_envs=3, seed=5)
+    (link,) = [t for t in env.transform if isinstance(t, V2VChannel)]
+    assert (link.delay_steps, link.loss, link.seed) == (3, 0.2, 5)  # seeded by the env: each worker its own draws
+    r = env.rollout(300, lambda td: td.set("action", torch.zeros(3, 1)))
+    recv, sent = r["next", "cav", "leader_accel"], r["next", "v2v", "sent"][..., -1]  # sent: this step's message
+    assert sent.abs().max() > 0.1
+    arrived = recv[:, 3:] == sent[:, :-3]
+    held = recv[:, 3:] == recv[:, 2:-1]
+    assert (arrived | held).all()  # every value received was sent 3 steps before, or is the last one held
+    assert 0.6 < float((arrived & (sent[:, :-3] != recv[:, 2:-1])).float().mean() / (sent[:, :-3] != recv[:, 2:-1]).float().mean()) < 0.95
+    # the evaluation drops the training's link and runs eval.v2v_*'s (none by default)
+    evaluated = make_transformed_env(cfg, num_envs=1, seed=0, without=TRAINING_ONLY, deploy=True)
+    assert not any(isinstance(t, V2VChannel) for t in evaluated.transform)
+    cfg = validate_config(compose([*TRAIN_LINK, "eval.v2v_delay=0.5"]))
+    evaluated = make_transformed_env(cfg, num_envs=1, seed=0, without=TRAINING_ONLY, deploy=True)
+    assert [t.delay_steps for t in evaluated.transform if isinstance(t, V2VChannel)] == [5]
+
+
+def test_the_analytic_gradient_pre_training_runs_over_the_link():
+    from mixed_traffic.training.apg import apg_pretrain
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.training.on_policy import build_ppo
+
+    chain = "transforms.chain=[non_negative_reward,safety_layer,residual_idm,intervention_cost,jerk_penalty,v2v_channel]"
+    cfg = compose(["experiment=ring_lagrangian_ppo_v2v", chain, "transforms.v2v_channel.delay=0.3",
+                   "transforms.v2v_channel.loss=0.2", "transforms.safety_layer.hold_seconds=0.0",
+                   "policy.apg.iterations=3", "policy.apg.horizon=4", "policy.apg.num_envs=2", "policy.apg.average_last=0"])
+    actor = build_ppo(cfg, make_transformed_env(cfg, num_envs=2, seed=0))[0]
+    before = [p.detach().clone() for p in actor.parameters()]
+    out = apg_pretrain(actor, cfg, log=None)  # windows start where the last one ended: the link's state is cut too
+    assert out["iterations"] == 3 and torch.isfinite(torch.tensor([out["loss_first"], out["loss_last"]])).all()
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(before, actor.parameters()))
+
+
+def test_training_link_settings_are_checked_at_start_up():
+    base = ["experiment=ring_lagrangian_ppo", "transforms.chain=[non_negative_reward,v2v_channel]"]
+    with pytest.raises(ConfigError, match=r"transforms.v2v_channel.delay: 0.05 is not a whole number of steps; "
+                                          r"allowed: a multiple of the env's step dt = 0.1 s"):
+        validate_config(compose([*base, "transforms.v2v_channel.delay=0.05"]))
+    with pytest.raises(ConfigError, match=r"transforms.v2v_channel.loss: 1.5 is out of range; allowed: a number in "
+                                          r"\[0, 1\]"):
+        validate_config(compose([*base, "transforms.v2v_channel.loss=1.5"]))

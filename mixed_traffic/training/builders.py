@@ -120,6 +120,17 @@ def _jerk_limit(tcfg, env):
     return JerkLimit(max_jerk=tcfg.jerk_limit.max_jerk)
 
 
+def _v2v_channel(tcfg, env):
+    from mixed_traffic.validation import v2v_delay_steps
+    from transforms import V2VChannel
+
+    c = tcfg.v2v_channel
+    rng = getattr(env, "rng", None)  # the env's generator: its seed sets the worker's own loss draws
+    seed = int(c.seed) + (int(rng.initial_seed()) if isinstance(rng, torch.Generator) else 0)
+    return V2VChannel(delay_steps=v2v_delay_steps(float(c.delay), float(env.scenario.dt), "transforms.v2v_channel.delay"),
+                      loss=float(c.loss), seed=seed % 2**63)
+
+
 def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
 
@@ -245,13 +256,14 @@ TRANSFORMS: dict[str, Callable] = {
     "residual_nnmpc": _residual_nnmpc,
     "jerk_penalty": _jerk_penalty,
     "jerk_limit": _jerk_limit,
+    "v2v_channel": _v2v_channel,
     "state_discretizer": _state_discretizer,
     "barrier_force": _barrier_force,
     "residual_nmpc": _residual_nmpc,
     "conflict_cost": _conflict_cost,
 }
 #: transforms that shape training only; the evaluation runs the env without them
-TRAINING_ONLY = ("conflict_cost", "jerk_penalty")
+TRAINING_ONLY = ("conflict_cost", "jerk_penalty", "v2v_channel")  # v2v_channel: eval.v2v_* sets the evaluated link
 DEPLOY_AWARE = ("residual_idm",)  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
 
 
