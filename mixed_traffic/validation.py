@@ -312,13 +312,10 @@ def validate_config(cfg: DictConfig) -> DictConfig:
 
 def _env_dt(cfg: DictConfig) -> float | None:
     """The step of ``cfg.env``'s scenario (s), or None where it has none to read (no env, another family)."""
-    from mixed_traffic.scenarios import PRESETS, get_scenario
-    from mixed_traffic.training.builders import env_kwargs
-
-    env = cfg.get("env")
-    if env is None or OmegaConf.select(cfg, "env.scenario", default=None) not in PRESETS:
+    if OmegaConf.select(cfg, "env.scenario", default=None) is None:
         return None
-    return float(get_scenario(env.scenario, **env_kwargs(env)).dt)
+    scenario = check_env_config(cfg)
+    return None if scenario is None else float(scenario.dt)
 
 
 def v2v_delay_steps(delay: float, dt: float, name: str = "eval.v2v_delay") -> int:
@@ -330,8 +327,9 @@ def v2v_delay_steps(delay: float, dt: float, name: str = "eval.v2v_delay") -> in
     return steps
 
 
-def check_env_config(cfg: DictConfig, **extra) -> None:
-    """Build (and so validate) the scenario of ``cfg.env`` without starting anything.
+def check_env_config(cfg: DictConfig, **extra):
+    """Build (and so validate) the scenario of ``cfg.env`` without starting anything, and return it (None for
+    the families that validate their own arguments, e.g. the intersection).
 
     Errors name the config path: ``env.<field>`` for the named fields, else
     ``env.overrides.<field>``.
@@ -341,9 +339,9 @@ def check_env_config(cfg: DictConfig, **extra) -> None:
 
     env = cfg.env
     if env.scenario not in PRESETS:  # the intersection env validates its own arguments
-        return
+        return None
     try:
-        get_scenario(env.scenario, **env_kwargs(env, **extra))
+        return get_scenario(env.scenario, **env_kwargs(env, **extra))
     except ConfigError as e:
         where = "env." if e.field in ENV_FIELDS else "env.overrides."
         raise ConfigError(where + e.field, e.problem, e.allowed) from None
