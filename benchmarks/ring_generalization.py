@@ -140,9 +140,12 @@ def case_names(requested: list[str], all_cases: dict) -> list[str]:
     return list(dict.fromkeys(n for c in requested for n in GROUPS.get(c, (c,))))
 
 
-def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int, v2v=(0.0, 0.0)):
+def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int, v2v=(0.0, 0.0),
+                noise=(0.0, 0.0, 0.0, 0.0)):
     """The run's config set to evaluate ``case``; ``v2v``: ``(eval.v2v_delay, eval.v2v_loss)``, the V2V link
-    every controller of the case receives its leader's acceleration over."""
+    every controller of the case receives its leader's acceleration over; ``noise``: ``(eval.sensor_noise_gap,
+    eval.sensor_noise_speed, eval.sensor_noise_tau, eval.sensor_noise_margin)``, the noise on what every controller
+    measures and the margin the run's safety layer and envelope keep for it."""
     from omegaconf import OmegaConf, open_dict
 
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
@@ -153,6 +156,8 @@ def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int
         cfg.eval.episode_seconds = seconds
         cfg.eval.seed = seed
         cfg.eval.v2v_delay, cfg.eval.v2v_loss = float(v2v[0]), float(v2v[1])
+        (cfg.eval.sensor_noise_gap, cfg.eval.sensor_noise_speed, cfg.eval.sensor_noise_tau,
+         cfg.eval.sensor_noise_margin) = (float(x) for x in noise)
         for k, v in case.get("eval", {}).items():
             cfg.eval[k] = v
         for k, v in case.get("env", {}).items():
@@ -211,6 +216,14 @@ def main(argv=None) -> dict:
                    help="every controller receives its leader's acceleration S seconds late (eval.v2v_delay)")
     p.add_argument("--v2v-loss", type=float, default=0.0, metavar="P",
                    help="... and loses each message with probability P, holding the last one (eval.v2v_loss)")
+    p.add_argument("--sensor-noise", type=float, nargs=2, default=(0.0, 0.0), metavar=("GAP", "SPEED"),
+                   help="every controller measures its gaps with white noise of std GAP m and its speeds SPEED m/s "
+                        "(eval.sensor_noise_gap, eval.sensor_noise_speed)")
+    p.add_argument("--sensor-noise-tau", type=float, default=0.0, metavar="TAU",
+                   help="... the errors correlated over TAU seconds (eval.sensor_noise_tau; 0: white)")
+    p.add_argument("--sensor-noise-margin", type=float, default=0.0, metavar="K",
+                   help="the run's safety layer and stopping envelope keep K standard deviations of the noise as "
+                        "margin (eval.sensor_noise_margin)")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -240,24 +253,27 @@ def main(argv=None) -> dict:
 
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
-    v2v = (a.v2v_delay, a.v2v_loss)
+    v2v, noise = (a.v2v_delay, a.v2v_loss), (*a.sensor_noise, a.sensor_noise_tau, a.sensor_noise_margin)
     try:
-        validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v))
+        validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v,
+                                    noise=noise))
     except ConfigError as e:
-        flag = {"eval.v2v_delay": "--v2v-delay", "eval.v2v_loss": "--v2v-loss"}.get(e.field, e.field)
+        flag = {"eval.v2v_delay": "--v2v-delay", "eval.v2v_loss": "--v2v-loss", "eval.sensor_noise_gap": "--sensor-noise GAP",
+                "eval.sensor_noise_speed": "--sensor-noise SPEED", "eval.sensor_noise_tau": "--sensor-noise-tau",
+                "eval.sensor_noise_margin": "--sensor-noise-margin"}.get(e.field, e.field)
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}
     for name in names:
         case = all_cases[name]
-        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v)
+        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise)
         rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
         results[name] = {"seconds": float(cfg.eval.episode_seconds), "policy": row(rep, prof),
                          "policy_without_layer": no_layer_rows(rep, prof)}
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
-            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v)
+            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
@@ -284,6 +300,8 @@ def main(argv=None) -> dict:
     (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
                                                          "seconds": a.seconds, "seed": a.seed,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
+                                                         "sensor_noise": {"gap": noise[0], "speed": noise[1], "tau": noise[2],
+                                                                          "margin": noise[3]},
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

@@ -86,6 +86,10 @@ class SafetyLayerConfig:
     recover_seconds: float = 5.0
     # during the first hold_seconds of an episode a head gap beyond s_max is only held (0: push from the start)
     hold_seconds: float = 0.0
+    # measurement margins of the s_min rule (m, m/s): it holds for the worst state within them of the measured
+    # one (eval.sensor_noise_margin sets them from the evaluation's noise)
+    gap_margin: float = 0.0
+    speed_margin: float = 0.0
 
 
 @dataclass
@@ -228,6 +232,9 @@ class ResidualConfig:
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
+    # the envelope's measurement margins (m, m/s), as the safety layer's (eval.sensor_noise_margin sets them)
+    gap_margin: float = 0.0
+    speed_margin: float = 0.0
     envelope_fade: str = "off"  # "off", "always", "deploy": the residual's push fades out near the envelope
     envelope_fade_slack: float | None = None  # m, > 0: ... from this margin of the envelope on; null: at the bound
     saturate_base: bool = True
@@ -695,6 +702,17 @@ class EvalConfig:
     # base's brake_floor read it, the gap and the speeds are measured on board and stay exact
     v2v_delay: float = 0.0
     v2v_loss: float = 0.0
+    # measurement noise (transforms.SensorNoise, first in the evaluated chain when either is > 0): Gaussian
+    # errors of this standard deviation on every gap (m) and every speed (m/s) the CAV measures, correlated over
+    # sensor_noise_tau seconds (0: white, drawn afresh each step; seeded by eval.seed); the policy, the
+    # residual's base and the safety layer all read the noisy values, the simulation runs on the true ones
+    sensor_noise_gap: float = 0.0
+    sensor_noise_speed: float = 0.0
+    sensor_noise_tau: float = 0.0
+    # k >= 0: the deployed safety layer and the residual base's stopping envelope keep their stopping rule for
+    # the worst state within k standard deviations of the noise (their gap_margin / speed_margin set to
+    # k * sensor_noise_gap / k * sensor_noise_speed); 0: they read the measurements as exact
+    sensor_noise_margin: float = 0.0
 
 
 # ----------------------------------------------------------------------------- top level

@@ -16,6 +16,7 @@ from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.residual import ResidualAction
 from transforms.rewards import NonNegativeReward, ProfileNormalisedReward, QuadraticReward
 from transforms.safety_layer import SafetyLayer
+from transforms.sensor_noise import SensorNoise
 from transforms.set_point import SetPointAction
 from transforms.v2v_channel import V2VChannel
 
@@ -38,4 +39,5 @@ __all__ = [
     "ConflictCost",
     "CounterfactualReward",
     "V2VChannel",
+    "SensorNoise",
 ]

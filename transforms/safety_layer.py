@@ -196,8 +196,13 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
                 leader_brake: Tensor | float | None = None, beyond_s_max: str = "push",
                 accel: Tensor | None = None, ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
-                hold_mask: Tensor | None = None, ego_brake: Tensor | float | None = None) -> Tensor:
+                hold_mask: Tensor | None = None, ego_brake: Tensor | float | None = None,
+                gap_margin: float = 0.0, speed_margin: float = 0.0) -> Tensor:
     """The executed acceleration: bounds, then s_max (up), then s_min (down, wins), then bounds.
+
+    ``gap_margin`` (m) and ``speed_margin`` (m/s), both >= 0: the s_min rule holds for the worst state within
+    them of the measured one (the gap shorter, the CAV faster, the leader slower), so that measurement errors
+    up to the margins do not take the true gap below ``s_min``; the s_max rule reads the measurements as they are.
 
     ``ego_brake`` (> 0, m/s^2, at least ``-low``) is the hardest braking the CAV can execute,
     defaulting to ``-low``: the s_min bound assumes the CAV brakes that hard from the next step
@@ -231,6 +236,9 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
         a = torch.maximum(a, torch.minimum(a_lo, high))
     brake = -low if ego_brake is None else torch.maximum(torch.as_tensor(ego_brake, dtype=low.dtype, device=low.device), -low)
     if s_min is not None:
+        if gap_margin or speed_margin:  # the worst state within the measurement margins
+            gap, speed = gap - gap_margin, speed + speed_margin
+            leader_speed = (leader_speed - speed_margin).clamp_min(0.0)
         if mode == "one_step":
             a_hi = one_step_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt)
         else:
@@ -292,6 +300,10 @@ class SafetyLayer(Transform):
             a head gap beyond ``s_max`` is only held, whatever ``beyond_s_max`` says: a CAV
             that engages far behind the head closes the gap at its own pace, and the layer
             pushes only a CAV that has not closed it by then (s, >= 0; 0: from the start).
+        gap_margin, speed_margin: measurement margins of the s_min rule (m, m/s, >= 0; default 0): it holds
+            for the worst state within them of the measured one (the gap shorter by ``gap_margin``, the CAV
+            faster and its leader slower by ``speed_margin``), for a CAV whose sensors err by up to that much
+            (``transforms.SensorNoise``).
         time_key: the episode time entry ``hold_seconds`` reads (default ``("traffic", "time")``).
         leader_brake: braking bound (> 0, m/s^2) of each CAV's leader, a float or one
             value per CAV; ``None`` reads it from the parent's ``scenario``
@@ -329,7 +341,7 @@ class SafetyLayer(Transform):
     def __init__(self, s_min: float | None = 5.0, s_max: float | None = 40.0, dt: float | None = None, *,
                  mode: str = "stopping", leader_brake: float | Sequence[float] | None = None,
                  ego_brake: float | None = None, beyond_s_max: str = "push", ramp_jerk: float = 1.0, recover_seconds: float = 5.0,
-                 hold_seconds: float = 0.0,
+                 hold_seconds: float = 0.0, gap_margin: float = 0.0, speed_margin: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), action_key: NestedKey = "action",
                  cav_keys: dict[str, NestedKey] | None = None,
                  out_keys: Sequence[NestedKey] = (("safety", "clipped"), ("safety", "delta"))):
@@ -343,6 +355,9 @@ class SafetyLayer(Transform):
             raise ValueError(f"SafetyLayer: recover_seconds={recover_seconds!r} is invalid; allowed: > 0 (s)")
         if not hold_seconds >= 0:
             raise ValueError(f"SafetyLayer: hold_seconds={hold_seconds!r} is invalid; allowed: >= 0 (s)")
+        for name, value in (("gap_margin", gap_margin), ("speed_margin", speed_margin)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"SafetyLayer: {name}={value!r} is invalid; allowed: >= 0 ({'m' if name[0] == 'g' else 'm/s'})")
         if s_min is not None and not s_min > 0:
             raise ValueError(f"SafetyLayer: s_min={s_min!r} is invalid; allowed: > 0 or None")
         if s_max is not None and not s_max > 0:
@@ -369,6 +384,7 @@ class SafetyLayer(Transform):
         self.s_min, self.s_max, self.mode, self.beyond_s_max = s_min, s_max, mode, beyond_s_max
         self.ramp_jerk, self.hold_seconds, self.time_key = float(ramp_jerk), float(hold_seconds), time_key
         self.recover_seconds = float(recover_seconds)
+        self.gap_margin, self.speed_margin = float(gap_margin), float(speed_margin)
         self._dt = dt
         self._leader_brake = leader_brake
         self._ego_brake = None if ego_brake is None else float(ego_brake)
@@ -458,6 +474,7 @@ class SafetyLayer(Transform):
             beyond_s_max=self.beyond_s_max, ramp_jerk=self.ramp_jerk, recover_seconds=self.recover_seconds,
             accel=tensordict.get(k["accel"]) if need_head and self.beyond_s_max == "ramp" else None,
             hold_mask=self._hold_mask(tensordict) if need_head else None, ego_brake=self._ego_brake_value(low),
+            gap_margin=self.gap_margin, speed_margin=self.speed_margin,
         )
         commanded = torch.minimum(torch.maximum(action, low), high)
         if self.active_rows is not None:

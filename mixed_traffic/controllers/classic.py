@@ -263,20 +263,34 @@ class StoppingEnvelope(nn.Module):
 
     :meth:`room` is how far the command lies below the bound (``a_stop - command``, >= 0): a residual over
     this law that adds at most that much stays inside the envelope (``ResidualAction(room_key=...)``).
+    ``gap_margin`` (m) and ``speed_margin`` (m/s): the rule holds for the worst state within them of the measured
+    one (the gap shorter, the car faster, the leader slower), for sensors that err by up to that much.
     """
 
-    def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float):
+    def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float,
+                 gap_margin: float = 0.0, speed_margin: float = 0.0):
         super().__init__()
         from transforms.safety_layer import safe_accel_upper  # mixed_traffic imports the transforms package lazily
 
         if not stop_gap > 0.0:
             raise ValueError(f"stop_gap = {stop_gap} is invalid; allowed: > 0 (m)")
+        if not (gap_margin >= 0.0 and speed_margin >= 0.0):
+            raise ValueError(f"gap_margin = {gap_margin}, speed_margin = {speed_margin} are invalid; allowed: >= 0")
+        self.gap_margin, self.speed_margin = float(gap_margin), float(speed_margin)
         self._upper = safe_accel_upper
         self.law, self.stop_gap, self.dt, self.brake, self.low = law, float(stop_gap), float(dt), float(brake), float(low)
         self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
 
+    def _worst(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
+        """The worst state within the measurement margins: the gap shorter, the car faster, the leader slower."""
+        if not (self.gap_margin or self.speed_margin):
+            return gap, speed, leader_speed
+        return gap - self.gap_margin, speed + self.speed_margin, (leader_speed - self.speed_margin).clamp_min(0.0)
+
     def bound(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        """``a_stop`` (floored at the car's braking bound: below it only from an already unsafe state)."""
+        """``a_stop`` (floored at the car's braking bound: below it only from an already unsafe state), for the
+        worst state within the measurement margins."""
+        gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
         upper = self._upper(gap, speed, leader_speed, s_min=self.stop_gap, dt=self.dt, brake=self.brake,
                             leader_brake=self.leader_brake.to(speed))
         return upper.clamp_min(self.low)
@@ -305,6 +319,7 @@ class StoppingEnvelope(nn.Module):
         Unlike :meth:`room`, whose scale near a stop is ``1 / dt^2`` per metre, it shrinks smoothly."""
         from transforms.safety_layer import braking_distance, stopping_budget
 
+        gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
         b_l = self.leader_brake.to(speed)
         b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), b_l)
         v = speed.clamp_min(0.0)
@@ -330,12 +345,14 @@ class _EnvelopeRoom(nn.Module):
 
 
 def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
-                             slack_key: NestedKey | None = None) -> TensorDictModule:
+                             slack_key: NestedKey | None = None, *, gap_margin: float = 0.0,
+                             speed_margin: float = 0.0) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
     (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
     writes the envelope's :meth:`~StoppingEnvelope.room` there, and with ``slack_key`` (with ``room_key``)
-    its :meth:`~StoppingEnvelope.slack`.
+    its :meth:`~StoppingEnvelope.slack`. ``gap_margin`` / ``speed_margin``: the envelope's measurement margins
+    (m, m/s; :class:`StoppingEnvelope`).
 
     >>> from mixed_traffic import make_env
     >>> env = make_env("ring", batch_size=2, seed=0)
@@ -348,7 +365,8 @@ def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, roo
     scenario = env.scenario
     low, _ = action_bounds(env)
     envelope = StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
-                                leader_brake=scenario_leader_brake(scenario), low=low)
+                                leader_brake=scenario_leader_brake(scenario), low=low, gap_margin=gap_margin,
+                                speed_margin=speed_margin)
     if room_key is None:
         if slack_key is not None:
             raise ValueError("stopping_envelope_policy: slack_key needs a room_key")

@@ -74,7 +74,10 @@ def seed_episodes(env, seeds: list[int]) -> None:
 # what episode_metrics reads of a rollout's "next" (the optional ones where the chain writes them)
 METRIC_KEYS = ("done", "collision", "reward", ("traffic", "time"), ("traffic", "accel"), ("traffic", "J"),
                ("cav", "gap"), ("cav", "head_gap"), ("cav", "speed"), ("cav", "head_speed"), ("cav", "accel"),
-               ("cav", "override"), ("safety", "clipped"), ("safety", "delta"))
+               ("cav", "override"), ("safety", "clipped"), ("safety", "delta"),
+               # the errors transforms.SensorNoise added to the CAV's measurements (eval.sensor_noise_*)
+               ("sensor_noise", "gap"), ("sensor_noise", "head_gap"), ("sensor_noise", "speed"),
+               ("sensor_noise", "head_speed"))
 
 
 def rollout_for_metrics(env, policy, steps: int, callback=None) -> TensorDictBase:
@@ -191,10 +194,14 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     valid = first_done_mask(done)
     t = nxt.get(("traffic", "time")).squeeze(-1)
     after = valid & (t >= warmup)
-    gap = nxt.get(("cav", "gap"))[..., 0]
-    head_gap = nxt.get(("cav", "head_gap"))[..., 0]
-    v = nxt.get(("cav", "speed"))[..., 0]
-    vh = nxt.get(("cav", "head_speed"))[..., 0]
+
+    def true(name: str) -> torch.Tensor:
+        """The CAV's entry ``name`` as it was, not as the CAV measured it: less the error that
+        :class:`transforms.SensorNoise` added (the metrics are of the true state under measurement noise)."""
+        x, err = nxt.get(("cav", name)), nxt.get(("sensor_noise", name), None)
+        return (x if err is None else x - err)[..., 0]
+
+    gap, head_gap, v, vh = true("gap"), true("head_gap"), true("speed"), true("head_speed")
     a = nxt.get(("cav", "accel"))[..., 0]
     a_head = nxt.get(("traffic", "accel"))[..., 0]
     f = follower_metrics(gap=gap, head_gap=head_gap, speed=v, head_speed=vh, accel=a, head_accel=a_head,
@@ -363,7 +370,12 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
               "profiles": {},
               "sumo_safety": bool(env_kwargs(cfg.env).get("sumo_safety", False)),
               # the V2V link the leader's acceleration was received over (0, 0: the perfect link)
-              "v2v": {"delay": float(cfg.eval.get("v2v_delay", 0.0)), "loss": float(cfg.eval.get("v2v_loss", 0.0))}}
+              "v2v": {"delay": float(cfg.eval.get("v2v_delay", 0.0)), "loss": float(cfg.eval.get("v2v_loss", 0.0))},
+              # the measurement noise's standard deviations (0, 0: exact measurements)
+              "sensor_noise": {"gap": float(cfg.eval.get("sensor_noise_gap", 0.0)),
+                               "speed": float(cfg.eval.get("sensor_noise_speed", 0.0)),
+                               "tau": float(cfg.eval.get("sensor_noise_tau", 0.0)),
+                               "margin": float(cfg.eval.get("sensor_noise_margin", 0.0))}}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)

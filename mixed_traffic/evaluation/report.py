@@ -67,6 +67,14 @@ def markdown(report: dict, title: str) -> str:
     if v2v.get("delay") or v2v.get("loss"):
         lines += [f"V2V link: the leader's acceleration received {v2v['delay']:g} s late, {100 * v2v['loss']:g} % of "
                   "the messages lost (the last one received held).", ""]
+    noise = report.get("sensor_noise") or {}
+    if noise.get("gap") or noise.get("speed"):
+        lines += [f"Measurement noise: every gap the CAV measures with a standard deviation of {noise['gap']:g} m, every "
+                  f"speed {noise['speed']:g} m/s ("
+                  + (f"correlated over {noise['tau']:g} s" if noise.get("tau") else "white, drawn each step")
+                  + "); the simulation runs on the true state"
+                  + (f"; the safety layer and the stopping envelope keep {noise['margin']:g} standard deviations of it as "
+                     "margin" if noise.get("margin") else "") + ".", ""]
     # the speed-mode-95 override rate only where the env ran with sumo_safety
     cols = MD_COLUMNS if report.get("sumo_safety") else tuple(c for c in MD_COLUMNS if c[0] != "override_rate")
     lines.append("| profile | " + " | ".join(c[1] for c in cols) + " |")

@@ -192,17 +192,18 @@ def generalization_table(dirs) -> str:
     ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; the layer's
     largest share of steps (with it); then the jerk against IDM-as-CAV's of every other baseline all the runs
     evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
-    cases were evaluated on other episodes or over another V2V link.
+    cases were evaluated on other episodes, over another V2V link or with other measurement noise.
     """
     runs = [(str(d), _generalization(d)) for d in dirs]
     for _, g in runs:  # written before the link was an option: the perfect link
         g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
+        g.setdefault("sensor_noise", {"gap": 0.0, "speed": 0.0, "tau": 0.0, "margin": 0.0})  # and exact measurements
     ref_dir, ref = runs[0]
     for d, g in runs[1:]:
-        for key in ("seed", "episodes", "seconds", "v2v"):
+        for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise"):
             if g.get(key) != ref.get(key):
                 raise ValueError(f"--generalization: {key} {g.get(key)!r} of {d!r} differs from {ref.get(key)!r} of "
-                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes and link")
+                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes, link and noise")
     cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
     if not cases:
         raise ValueError("--generalization: the runs have no case in common")
@@ -210,12 +211,16 @@ def generalization_table(dirs) -> str:
     # the other baselines every run evaluated (e.g. cacc on one seed only: left out)
     others = [k for k in ref["results"][cases[0]] if k not in skip
               and all(k in g["results"][c] for _, g in runs for c in cases)]
-    link = ref["v2v"]
+    link, noise = ref["v2v"], ref["sensor_noise"]
     head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's", "layer's share",
             *(f"{o}: jerk − IDM's" for o in others)]
     lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
              f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
-                                 if link["delay"] or link["loss"] else "") + ".", "",
+                                 if link["delay"] or link["loss"] else "")
+             + (f"; measured with noise of {noise['gap']:g} m and {noise['speed']:g} m/s"
+                + (f" correlated over {noise['tau']:g} s" if noise.get("tau") else "")
+                + (f", the layer's and envelope's margin {noise['margin']:g} standard deviations" if noise.get("margin") else "")
+                if noise["gap"] or noise["speed"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in cases:
         coll, gmin, gmax, jerk, rmse, ret, layer = 0, math.inf, -math.inf, [], [], [], []

@@ -65,7 +65,8 @@ def _safety_layer(tcfg, env):
     s = tcfg.safety_layer
     return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode, beyond_s_max=s.get("beyond_s_max", "push"),
                        ramp_jerk=s.get("ramp_jerk", 1.0), recover_seconds=s.get("recover_seconds", 5.0),
-                       hold_seconds=s.get("hold_seconds", 0.0))
+                       hold_seconds=s.get("hold_seconds", 0.0), gap_margin=s.get("gap_margin", 0.0),
+                       speed_margin=s.get("speed_margin", 0.0))
 
 
 def _residual_damper(tcfg, env):
@@ -189,7 +190,8 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
         base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv,
                                horizon=catch.get("horizon", 0.0))
     if rcfg.get("stop_gap") is not None:
-        base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key)
+        base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key,
+                                        gap_margin=rcfg.get("gap_margin", 0.0), speed_margin=rcfg.get("speed_margin", 0.0))
     return base
 
 
@@ -295,11 +297,12 @@ def chain_transforms(cfg: DictConfig, base: EnvBase, *, without: tuple[str, ...]
     """``cfg.transforms.chain`` less ``without``, built for ``base`` (``deploy`` as in :func:`make_transformed_env`),
     then ``EpisodeRewardSum`` and ``StepCounter``: what :func:`make_transformed_env` wraps its env in, and what the
     SUMO evaluation wraps its ``ParallelEnv`` of SUMO rings in, so both evaluate the same chain."""
-    ts = [TRANSFORMS[name](cfg.transforms, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
+    tcfg = noise_margined(cfg) if deploy else cfg.transforms
+    ts = [TRANSFORMS[name](tcfg, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
           for name in cfg.transforms.chain if name not in without]
-    channel = eval_v2v_channel(cfg, base) if deploy else None
-    if channel is not None:
-        ts.insert(0, channel)
+    for measured in ((eval_v2v_channel(cfg, base), eval_sensor_noise(cfg, base)) if deploy else ()):
+        if measured is not None:
+            ts.insert(0, measured)
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return Compose(*ts)
 
@@ -316,6 +319,50 @@ def eval_v2v_channel(cfg: DictConfig, base: EnvBase):
         return None
     Real(0, 1)("eval.v2v_loss", loss)
     return V2VChannel(delay_steps=v2v_delay_steps(delay, float(base.scenario.dt)), loss=loss, seed=int(e.seed))
+
+
+def noise_margined(cfg: DictConfig) -> DictConfig:
+    """``cfg.transforms`` with the safety layer's and the residual envelope's measurement margins set to
+    ``eval.sensor_noise_margin`` standard deviations of the evaluation's noise (``k * eval.sensor_noise_gap`` m,
+    ``k * eval.sensor_noise_speed`` m/s), added to any margins they already have; ``cfg.transforms`` itself
+    when ``k`` is 0 or there is no noise."""
+    from omegaconf import OmegaConf, open_dict
+
+    e = cfg.get("eval")
+    k = 0.0 if e is None else float(e.get("sensor_noise_margin", 0.0))
+    gap, speed = (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
+    if k == 0.0 or (gap == 0.0 and speed == 0.0):
+        return cfg.transforms
+    tcfg = OmegaConf.create(OmegaConf.to_container(cfg.transforms, resolve=True))
+    with open_dict(tcfg):
+        for node in ("safety_layer", "residual"):
+            if tcfg.get(node) is not None:
+                tcfg[node].gap_margin = float(tcfg[node].get("gap_margin", 0.0)) + k * gap
+                tcfg[node].speed_margin = float(tcfg[node].get("speed_margin", 0.0)) + k * speed
+    return tcfg
+
+
+def eval_sensor_noise(cfg: DictConfig, base: EnvBase):
+    """The evaluation's measurement noise (``eval.sensor_noise_gap`` m, ``eval.sensor_noise_speed`` m/s, correlated
+    over ``eval.sensor_noise_tau`` s) as a :class:`transforms.SensorNoise` seeded by ``eval.seed``, or None for
+    exact measurements (both 0, or no ``eval`` node)."""
+    from mixed_traffic.validation import Real
+    from transforms import SensorNoise
+
+    e = cfg.get("eval")
+    gap, speed = (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
+    if gap == 0.0 and speed == 0.0:
+        return None
+    Real(0, 10)("eval.sensor_noise_gap", gap)
+    Real(0, 5)("eval.sensor_noise_speed", speed)
+    tau = float(e.get("sensor_noise_tau", 0.0))
+    Real(0, 60)("eval.sensor_noise_tau", tau)
+    sc = base.scenario
+    if sc.observation not in SensorNoise.OBSERVATIONS:
+        raise ValueError(f"eval.sensor_noise_*: the env's observation {sc.observation!r} is not supported; allowed: "
+                         f"{list(SensorNoise.OBSERVATIONS)}")
+    return SensorNoise(gap, speed, seed=int(e.seed), observation=sc.observation, s_max=float(sc.s_max), tau=tau,
+                       dt=float(sc.dt))
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
