@@ -191,6 +191,15 @@ def head_accel_lower(head_gap: Tensor, v: Tensor, head_speed: Tensor, *, s_max: 
     return (head_speed - w - v) / dt
 
 
+def worst_within_margins(gap: Tensor, speed: Tensor, leader_speed: Tensor, gap_margin: float,
+                         speed_margin: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The state within measurement margins of the measured one that the stopping rule fears most: the gap
+    shorter by ``gap_margin``, the CAV faster and its leader slower by ``speed_margin`` (not below 0)."""
+    if not (gap_margin or speed_margin):
+        return gap, speed, leader_speed
+    return gap - gap_margin, speed + speed_margin, (leader_speed - speed_margin).clamp_min(0.0)
+
+
 def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Tensor,
                 head_gap: Tensor | None, head_speed: Tensor | None, low: Tensor | float, high: Tensor | float,
                 dt: float, s_min: float | None = 5.0, s_max: float | None = 40.0, mode: str = "stopping",
@@ -236,9 +245,7 @@ def safe_action(action: Tensor, *, gap: Tensor, speed: Tensor, leader_speed: Ten
         a = torch.maximum(a, torch.minimum(a_lo, high))
     brake = -low if ego_brake is None else torch.maximum(torch.as_tensor(ego_brake, dtype=low.dtype, device=low.device), -low)
     if s_min is not None:
-        if gap_margin or speed_margin:  # the worst state within the measurement margins
-            gap, speed = gap - gap_margin, speed + speed_margin
-            leader_speed = (leader_speed - speed_margin).clamp_min(0.0)
+        gap, speed, leader_speed = worst_within_margins(gap, speed, leader_speed, gap_margin, speed_margin)
         if mode == "one_step":
             a_hi = one_step_accel_upper(gap, speed, leader_speed, s_min=s_min, dt=dt)
         else:

@@ -22,8 +22,6 @@ from torchrl.envs.transforms import Transform
 
 GAPS = (("cav", "gap"), ("cav", "head_gap"))
 SPEEDS = (("cav", "speed"), ("cav", "leader_speed"), ("cav", "head_speed"))
-# the observations whose vector this transform can move (mixed_traffic.envs.traffic.observe's "relative" family)
-OBSERVATIONS = ("relative", "relative_accel", "relative_time", "relative_no_speed")
 
 
 class SensorNoise(Transform):
@@ -65,15 +63,16 @@ class SensorNoise(Transform):
         False
     """
 
-    OBSERVATIONS = OBSERVATIONS
-
     def __init__(self, gap_std: float = 0.0, speed_std: float = 0.0, *, seed: int = 0,
                  observation: str = "relative", s_max: float = 40.0, tau: float = 0.0, dt: float = 0.1):
         for name, value in (("gap_std", gap_std), ("speed_std", speed_std)):
             if not float(value) >= 0.0:
                 raise ValueError(f"SensorNoise: {name}={value!r} is invalid; allowed: >= 0")
-        if observation not in OBSERVATIONS:
-            raise ValueError(f"SensorNoise: observation={observation!r} is not supported; allowed: {list(OBSERVATIONS)} "
+        from mixed_traffic.scenarios import HEAD_OBSERVATIONS  # the "relative" family (mixed_traffic imports
+        # the transforms package lazily, so this import is too)
+
+        if observation not in HEAD_OBSERVATIONS:
+            raise ValueError(f"SensorNoise: observation={observation!r} is not supported; allowed: {list(HEAD_OBSERVATIONS)} "
                              "(the layouts whose features it can move)")
         if not float(tau) >= 0.0:
             raise ValueError(f"SensorNoise: tau={tau!r} is invalid; allowed: >= 0 (s)")
@@ -116,11 +115,14 @@ class SensorNoise(Transform):
         return td
 
     def _observation_shift(self, n: dict, obs: torch.Tensor) -> torch.Tensor:
-        """The change of :func:`~mixed_traffic.envs.traffic.observe`'s features under the noise ``n``."""
-        v, vl, vh = n[("cav", "speed")], n[("cav", "leader_speed")], n[("cav", "head_speed")]
-        g, hg = n[("cav", "gap")], n[("cav", "head_gap")]
-        feats = [v / 30.0, (vl - v) / 10.0, g / self.s_max, hg / (2 * self.s_max), (vh - v) / 10.0, -v / 10.0,
-                 torch.zeros_like(v)]  # the v_eq feature moves with the own speed; the own acceleration does not
+        """The change of :func:`~mixed_traffic.envs.traffic.observe`'s features under the noise ``n``: the
+        features are linear in the measurements, so the change is the features of the noise itself, with the
+        uniform-flow speed and the own acceleration (not measured here) unchanged."""
+        from mixed_traffic.envs.traffic import relative_features
+
+        v, zero = n[("cav", "speed")], torch.zeros_like(n[("cav", "speed")])
+        feats = relative_features(v, n[("cav", "leader_speed")], n[("cav", "gap")], n[("cav", "head_gap")],
+                                  n[("cav", "head_speed")], zero, zero, s_max=self.s_max, a_scale=1.0)
         if self.observation == "relative_no_speed":
             feats = feats[1:]
         elif self.observation in ("relative_accel", "relative_time"):

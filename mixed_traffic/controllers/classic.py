@@ -282,10 +282,10 @@ class StoppingEnvelope(nn.Module):
         self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
 
     def _worst(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor):
-        """The worst state within the measurement margins: the gap shorter, the car faster, the leader slower."""
-        if not (self.gap_margin or self.speed_margin):
-            return gap, speed, leader_speed
-        return gap - self.gap_margin, speed + self.speed_margin, (leader_speed - self.speed_margin).clamp_min(0.0)
+        """The worst state within the measurement margins (:func:`transforms.safety_layer.worst_within_margins`)."""
+        from transforms.safety_layer import worst_within_margins
+
+        return worst_within_margins(gap, speed, leader_speed, self.gap_margin, self.speed_margin)
 
     def bound(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """``a_stop`` (floored at the car's braking bound: below it only from an already unsafe state), for the

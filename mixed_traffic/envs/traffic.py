@@ -132,6 +132,16 @@ def head_gaps(sc: TrafficScenario, pos: Tensor, ring_length: Tensor | float | No
     return d - sc.vehicle_length
 
 
+def relative_features(v: Tensor, v_lead: Tensor, gap: Tensor, head_gap: Tensor, v_head: Tensor, v_eq: Tensor,
+                      cav_accel: Tensor, *, s_max: float, a_scale: float) -> list[Tensor]:
+    """The seven features every ``"relative"`` observation starts with, per CAV: own speed, the leader's and
+    the head's speed relative to it, the gap and the gap to the head, the uniform-flow speed relative to it,
+    its last acceleration (each ``[..., n_cav]``). Linear in its inputs, so it also gives how the features move
+    when the inputs move (:class:`transforms.SensorNoise`)."""
+    return [v / 30.0, (v_lead - v) / 10.0, gap / s_max, head_gap / (2 * s_max), (v_head - v) / 10.0,
+            (v_eq - v) / 10.0, cav_accel / a_scale]
+
+
 def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_accel: Tensor, v_eq: Tensor,
             *, ring_length: Tensor | float | None = None, speed_avg: Tensor | None = None,
             accel: Tensor | None = None, time: Tensor | None = None) -> Tensor:
@@ -162,8 +172,8 @@ def observe(sc: TrafficScenario, pos: Tensor, speed: Tensor, gap: Tensor, cav_ac
                 raise ValueError("observe: observation='wave_ring_time' needs the episode time (time=)")
             feats.append((time / 600.0).clamp(0.0, 1.0).expand_as(v))
     else:
-        feats = [v / 30.0, (v_lead - v) / 10.0, gap[..., ci] / sc.s_max, head_gaps(sc, pos, L) / (2 * sc.s_max),
-                 (speed[..., :1] - v) / 10.0, (v_eq - v) / 10.0, cav_accel / a_scale]
+        feats = relative_features(v, v_lead, gap[..., ci], head_gaps(sc, pos, L), speed[..., :1], v_eq, cav_accel,
+                                  s_max=sc.s_max, a_scale=a_scale)
         if sc.observation == "relative_accel":
             if accel is None:
                 raise ValueError("observe: observation='relative_accel' needs every vehicle's acceleration (accel=)")

@@ -358,11 +358,11 @@ def eval_sensor_noise(cfg: DictConfig, base: EnvBase):
     tau = float(e.get("sensor_noise_tau", 0.0))
     Real(0, 60)("eval.sensor_noise_tau", tau)
     sc = base.scenario
-    if sc.observation not in SensorNoise.OBSERVATIONS:
-        raise ValueError(f"eval.sensor_noise_*: the env's observation {sc.observation!r} is not supported; allowed: "
-                         f"{list(SensorNoise.OBSERVATIONS)}")
-    return SensorNoise(gap, speed, seed=int(e.seed), observation=sc.observation, s_max=float(sc.s_max), tau=tau,
-                       dt=float(sc.dt))
+    try:
+        return SensorNoise(gap, speed, seed=int(e.seed), observation=sc.observation, s_max=float(sc.s_max), tau=tau,
+                           dt=float(sc.dt))
+    except ValueError as err:  # the env's observation is one the noise cannot move
+        raise ValueError(f"eval.sensor_noise_*: {err}") from None
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
