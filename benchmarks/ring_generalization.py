@@ -141,11 +141,12 @@ def case_names(requested: list[str], all_cases: dict) -> list[str]:
 
 
 def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int, v2v=(0.0, 0.0),
-                noise=(0.0, 0.0, 0.0, 0.0)):
+                noise=(0.0, 0.0, 0.0, 0.0), sensor_filter: bool = False):
     """The run's config set to evaluate ``case``; ``v2v``: ``(eval.v2v_delay, eval.v2v_loss)``, the V2V link
     every controller of the case receives its leader's acceleration over; ``noise``: ``(eval.sensor_noise_gap,
     eval.sensor_noise_speed, eval.sensor_noise_tau, eval.sensor_noise_margin)``, the noise on what every controller
-    measures and the margin the run's safety layer and envelope keep for it."""
+    measures and the margin the run's safety layer and envelope keep for it; ``sensor_filter``: every controller
+    acts on a Kalman filter's estimates of its measurements (``eval.sensor_filter``)."""
     from omegaconf import OmegaConf, open_dict
 
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
@@ -158,6 +159,7 @@ def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int
         cfg.eval.v2v_delay, cfg.eval.v2v_loss = float(v2v[0]), float(v2v[1])
         (cfg.eval.sensor_noise_gap, cfg.eval.sensor_noise_speed, cfg.eval.sensor_noise_tau,
          cfg.eval.sensor_noise_margin) = (float(x) for x in noise)
+        cfg.eval.sensor_filter = bool(sensor_filter)
         for k, v in case.get("eval", {}).items():
             cfg.eval[k] = v
         for k, v in case.get("env", {}).items():
@@ -224,6 +226,9 @@ def main(argv=None) -> dict:
     p.add_argument("--sensor-noise-margin", type=float, default=0.0, metavar="K",
                    help="the run's safety layer and stopping envelope keep K standard deviations of the noise as "
                         "margin (eval.sensor_noise_margin)")
+    p.add_argument("--sensor-filter", action="store_true",
+                   help="every controller acts on a Kalman filter's estimates of its noisy measurements "
+                        "(eval.sensor_filter); the margin then counts the estimates' standard deviations")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -256,7 +261,7 @@ def main(argv=None) -> dict:
     v2v, noise = (a.v2v_delay, a.v2v_loss), (*a.sensor_noise, a.sensor_noise_tau, a.sensor_noise_margin)
     try:
         validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v,
-                                    noise=noise))
+                                    noise=noise, sensor_filter=a.sensor_filter))
     except ConfigError as e:
         flag = {"eval.v2v_delay": "--v2v-delay", "eval.v2v_loss": "--v2v-loss", "eval.sensor_noise_gap": "--sensor-noise GAP",
                 "eval.sensor_noise_speed": "--sensor-noise SPEED", "eval.sensor_noise_tau": "--sensor-noise-tau",
@@ -266,14 +271,16 @@ def main(argv=None) -> dict:
     results = {}
     for name in names:
         case = all_cases[name]
-        cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise)
+        settings = dict(episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise,
+                        sensor_filter=a.sensor_filter)
+        cfg = case_config(run_cfg, case, **settings)
         rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
         results[name] = {"seconds": float(cfg.eval.episode_seconds), "policy": row(rep, prof),
                          "policy_without_layer": no_layer_rows(rep, prof)}
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
-            base_cfg = case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise)
+            base_cfg = case_config(run_cfg, case, **settings)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = ["non_negative_reward"]
             fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
@@ -301,7 +308,7 @@ def main(argv=None) -> dict:
                                                          "seconds": a.seconds, "seed": a.seed,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
                                                          "sensor_noise": {"gap": noise[0], "speed": noise[1], "tau": noise[2],
-                                                                          "margin": noise[3]},
+                                                                          "margin": noise[3], "filter": a.sensor_filter},
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

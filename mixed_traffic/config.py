@@ -119,6 +119,25 @@ class InterventionCostConfig:
 
 
 @dataclass
+class SensorNoiseConfig:
+    """``sensor_noise`` in the chain: the measurement noise the policy trains under (``transforms.SensorNoise``,
+    and with ``filter`` a ``transforms.MeasurementFilter`` of it behind).
+
+    Errors of standard deviation ``gap`` (m) on every gap and ``speed`` (m/s) on every speed the CAV measures,
+    correlated over ``tau`` s (0: white). Training only, like ``v2v_channel``: the evaluation's noise is
+    ``eval.sensor_noise_*`` (none by default) and its filter ``eval.sensor_filter``. The draws are seeded by
+    ``seed`` plus the env's own seed, so every worker draws its own and a run repeats under its seed. Place it
+    after ``v2v_channel`` in the chain for the filter to read the degraded link.
+    """
+
+    gap: float = 0.0  # m
+    speed: float = 0.0  # m/s
+    tau: float = 0.0  # s
+    filter: bool = False
+    seed: int = 0
+
+
+@dataclass
 class V2VChannelConfig:
     """``v2v_channel`` in the chain: the V2V link the policy trains over (``transforms.V2VChannel``).
 
@@ -386,6 +405,7 @@ class TransformsConfig:
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     jerk_limit: JerkLimitConfig = field(default_factory=JerkLimitConfig)
     v2v_channel: V2VChannelConfig = field(default_factory=V2VChannelConfig)
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)
     counterfactual_reward: CounterfactualRewardConfig = field(default_factory=CounterfactualRewardConfig)
@@ -713,6 +733,11 @@ class EvalConfig:
     # the worst state within k standard deviations of the noise (their gap_margin / speed_margin set to
     # k * sensor_noise_gap / k * sensor_noise_speed); 0: they read the measurements as exact
     sensor_noise_margin: float = 0.0
+    # true: a Kalman filter (transforms.MeasurementFilter, after the noise and the V2V link) tracks the noisy gaps
+    # and speeds from the CAV's own acceleration and its leader's received over V2V, and everything behind it acts
+    # on its estimates; its model is the noise above; sensor_noise_margin then counts the estimates' standard
+    # deviations instead of the sensor's; without noise it does nothing
+    sensor_filter: bool = False
 
 
 # ----------------------------------------------------------------------------- top level

@@ -220,6 +220,10 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.v2v_channel.delay": Real(0, 10),
     "transforms.v2v_channel.loss": Real(0, 1),
     "transforms.v2v_channel.seed": Int(0),
+    "transforms.sensor_noise.gap": Real(0, 10),
+    "transforms.sensor_noise.speed": Real(0, 5),
+    "transforms.sensor_noise.tau": Real(0, 60),
+    "transforms.sensor_noise.seed": Int(0),
 }
 
 _MISSING = object()

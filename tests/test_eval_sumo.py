@@ -114,19 +114,22 @@ def test_mt_eval_backend_sumo_writes_the_same_report(tmp_path):
     assert rep["overall"]["collisions"] == 0
 
 
-def test_sumo_measures_the_true_state_under_sensor_noise():
+@pytest.mark.parametrize("sensor_filter", [False, True])
+def test_sumo_measures_the_true_state_under_sensor_noise(sensor_filter):
     """A controller that reads nothing drives the same SUMO episode with and without noise: the same metrics
-    (the evaluation subtracts the errors SensorNoise added), while the noise did reach the chain."""
+    (the evaluation subtracts the errors SensorNoise added, or those of MeasurementFilter's estimates), while
+    the noise did reach the chain."""
     cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=reward", "eval.warmup_seconds=1.0",
                    "eval.settle_seconds=0.5"])
     noisy = compose(["experiment=ring_lagrangian_ppo", "transforms=reward", "eval.warmup_seconds=1.0",
-                     "eval.settle_seconds=0.5", "eval.sensor_noise_gap=2.0", "eval.sensor_noise_speed=0.5"])
+                     "eval.settle_seconds=0.5", "eval.sensor_noise_gap=2.0", "eval.sensor_noise_speed=0.5",
+                     f"eval.sensor_filter={str(sensor_filter).lower()}"])
     blind = lambda env: TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")],  # noqa: E731
                                          out_keys=["action"])
     kw = dict(policy_factory=blind, profiles=["random_steps"], episodes=1, seed=7, episode_seconds=15.0)
     exact, _ = evaluate_on_sumo(cfg, workers=0, **kw)
     rep, _ = evaluate_on_sumo(noisy, workers=0, **kw)
-    assert rep["sensor_noise"]["gap"] == 2.0
+    assert rep["sensor_noise"]["gap"] == 2.0 and rep["sensor_noise"]["filter"] is sensor_filter
     for key in ("min_gap", "max_head_gap", "speed_rmse", "mean_abs_jerk"):
         assert rep["profiles"]["random_steps"]["per_episode"][key] == pytest.approx(
             exact["profiles"]["random_steps"]["per_episode"][key], abs=1e-3), key

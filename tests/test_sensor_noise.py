@@ -133,7 +133,7 @@ def test_the_noise_reaches_every_controller_and_the_report_names_it(tmp_path):
 
     assert jerk("eval.sensor_noise_speed=0.2") > jerk()  # IDM reacts to what it measures
     rep = evaluate_and_report(compose([*short, "controller=idm", "eval.episodes=1", "eval.sensor_noise_gap=0.3"]), tmp_path)
-    assert rep["sensor_noise"] == {"gap": 0.3, "speed": 0.0, "tau": 0.0, "margin": 0.0}
+    assert rep["sensor_noise"] == {"gap": 0.3, "speed": 0.0, "tau": 0.0, "margin": 0.0, "filter": False}
     assert "every gap the CAV measures with a standard deviation of 0.3 m" in Path(rep["paths"]["md"]).read_text()
 
 

@@ -13,6 +13,7 @@ from transforms.intervention_cost import InterventionCost
 from transforms.jerk_limit import JerkLimit
 from transforms.jerk_penalty import JerkPenalty
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
+from transforms.measurement_filter import MeasurementFilter
 from transforms.residual import ResidualAction
 from transforms.rewards import NonNegativeReward, ProfileNormalisedReward, QuadraticReward
 from transforms.safety_layer import SafetyLayer
@@ -40,4 +41,5 @@ __all__ = [
     "CounterfactualReward",
     "V2VChannel",
     "SensorNoise",
+    "MeasurementFilter",
 ]

@@ -24,6 +24,40 @@ GAPS = (("cav", "gap"), ("cav", "head_gap"))
 SPEEDS = (("cav", "speed"), ("cav", "leader_speed"), ("cav", "head_speed"))
 
 
+def observation_shift(delta: dict, obs: torch.Tensor, *, observation: str, s_max: float) -> torch.Tensor:
+    """How :func:`~mixed_traffic.envs.traffic.observe`'s ``observation`` layout moves when the measured entries
+    move by ``delta`` (``{key: change}`` over :data:`GAPS` and :data:`SPEEDS`). The features are linear in the
+    measurements, so the change is the features of ``delta`` itself, with the uniform-flow speed and the own
+    acceleration (not measured here) unchanged. Shared by :class:`SensorNoise` and
+    :class:`transforms.MeasurementFilter`."""
+    from mixed_traffic.envs.traffic import relative_features
+
+    v, zero = delta[("cav", "speed")], torch.zeros_like(delta[("cav", "speed")])
+    feats = relative_features(v, delta[("cav", "leader_speed")], delta[("cav", "gap")], delta[("cav", "head_gap")],
+                              delta[("cav", "head_speed")], zero, zero, s_max=s_max, a_scale=1.0)
+    if observation == "relative_no_speed":
+        feats = feats[1:]
+    elif observation in ("relative_accel", "relative_time"):
+        feats.append(torch.zeros_like(v))
+    shift = torch.stack(feats, -1).flatten(-2)
+    if shift.shape[-1] != obs.shape[-1]:
+        raise RuntimeError(f"the observation has {obs.shape[-1]} features, the {observation!r} layout "
+                           f"{shift.shape[-1]}; pass the env's own observation")
+    return shift
+
+
+def check_layout(name: str, observation: str, s_max: float) -> None:
+    """Refuse an observation layout whose features :func:`observation_shift` cannot move, and a bad ``s_max``."""
+    from mixed_traffic.scenarios import HEAD_OBSERVATIONS  # the "relative" family (mixed_traffic imports
+    # the transforms package lazily, so this import is too)
+
+    if observation not in HEAD_OBSERVATIONS:
+        raise ValueError(f"{name}: observation={observation!r} is not supported; allowed: {list(HEAD_OBSERVATIONS)} "
+                         "(the layouts whose features it can move)")
+    if not float(s_max) > 0.0:
+        raise ValueError(f"{name}: s_max={s_max!r} is invalid; allowed: > 0 (m)")
+
+
 class SensorNoise(Transform):
     """Add noise of standard deviation ``gap_std`` to each measured gap and ``speed_std`` to each measured speed.
 
@@ -68,18 +102,11 @@ class SensorNoise(Transform):
         for name, value in (("gap_std", gap_std), ("speed_std", speed_std)):
             if not float(value) >= 0.0:
                 raise ValueError(f"SensorNoise: {name}={value!r} is invalid; allowed: >= 0")
-        from mixed_traffic.scenarios import HEAD_OBSERVATIONS  # the "relative" family (mixed_traffic imports
-        # the transforms package lazily, so this import is too)
-
-        if observation not in HEAD_OBSERVATIONS:
-            raise ValueError(f"SensorNoise: observation={observation!r} is not supported; allowed: {list(HEAD_OBSERVATIONS)} "
-                             "(the layouts whose features it can move)")
+        check_layout("SensorNoise", observation, s_max)
         if not float(tau) >= 0.0:
             raise ValueError(f"SensorNoise: tau={tau!r} is invalid; allowed: >= 0 (s)")
         if not float(dt) > 0.0:
             raise ValueError(f"SensorNoise: dt={dt!r} is invalid; allowed: > 0 (s)")
-        if not float(s_max) > 0.0:
-            raise ValueError(f"SensorNoise: s_max={s_max!r} is invalid; allowed: > 0 (m)")
         keys = [*GAPS, *SPEEDS]
         super().__init__(in_keys=keys, out_keys=keys)
         self.gap_std, self.speed_std, self.seed = float(gap_std), float(speed_std), int(seed)
@@ -111,27 +138,8 @@ class SensorNoise(Transform):
             td.set(self._state_key(key), x)
         obs = td.get("observation", None)
         if obs is not None:
-            td.set("observation", obs + self._observation_shift(n, obs))
+            td.set("observation", obs + observation_shift(n, obs, observation=self.observation, s_max=self.s_max))
         return td
-
-    def _observation_shift(self, n: dict, obs: torch.Tensor) -> torch.Tensor:
-        """The change of :func:`~mixed_traffic.envs.traffic.observe`'s features under the noise ``n``: the
-        features are linear in the measurements, so the change is the features of the noise itself, with the
-        uniform-flow speed and the own acceleration (not measured here) unchanged."""
-        from mixed_traffic.envs.traffic import relative_features
-
-        v, zero = n[("cav", "speed")], torch.zeros_like(n[("cav", "speed")])
-        feats = relative_features(v, n[("cav", "leader_speed")], n[("cav", "gap")], n[("cav", "head_gap")],
-                                  n[("cav", "head_speed")], zero, zero, s_max=self.s_max, a_scale=1.0)
-        if self.observation == "relative_no_speed":
-            feats = feats[1:]
-        elif self.observation in ("relative_accel", "relative_time"):
-            feats.append(torch.zeros_like(v))
-        shift = torch.stack(feats, -1).flatten(-2)
-        if shift.shape[-1] != obs.shape[-1]:
-            raise RuntimeError(f"SensorNoise: the observation has {obs.shape[-1]} features, the {self.observation!r} "
-                               f"layout {shift.shape[-1]}; pass the env's own observation")
-        return shift
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         return self._measure(tensordict_reset, None)

@@ -77,7 +77,10 @@ METRIC_KEYS = ("done", "collision", "reward", ("traffic", "time"), ("traffic", "
                ("cav", "override"), ("safety", "clipped"), ("safety", "delta"),
                # the errors transforms.SensorNoise added to the CAV's measurements (eval.sensor_noise_*)
                ("sensor_noise", "gap"), ("sensor_noise", "head_gap"), ("sensor_noise", "speed"),
-               ("sensor_noise", "head_speed"))
+               ("sensor_noise", "head_speed"),
+               # and the errors of transforms.MeasurementFilter's estimates of them (eval.sensor_filter)
+               ("sensor_filter", "gap"), ("sensor_filter", "head_gap"), ("sensor_filter", "speed"),
+               ("sensor_filter", "head_speed"))
 
 
 def rollout_for_metrics(env, policy, steps: int, callback=None) -> TensorDictBase:
@@ -197,8 +200,11 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
 
     def true(name: str) -> torch.Tensor:
         """The CAV's entry ``name`` as it was, not as the CAV measured it: less the error that
-        :class:`transforms.SensorNoise` added (the metrics are of the true state under measurement noise)."""
-        x, err = nxt.get(("cav", name)), nxt.get(("sensor_noise", name), None)
+        :class:`transforms.SensorNoise` added, or :class:`transforms.MeasurementFilter`'s estimate's error behind
+        one (the metrics are of the true state under measurement noise)."""
+        x = nxt.get(("cav", name))
+        err = nxt.get(("sensor_filter", name), None)
+        err = nxt.get(("sensor_noise", name), None) if err is None else err
         return (x if err is None else x - err)[..., 0]
 
     gap, head_gap, v, vh = true("gap"), true("head_gap"), true("speed"), true("head_speed")
@@ -375,7 +381,8 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
               "sensor_noise": {"gap": float(cfg.eval.get("sensor_noise_gap", 0.0)),
                                "speed": float(cfg.eval.get("sensor_noise_speed", 0.0)),
                                "tau": float(cfg.eval.get("sensor_noise_tau", 0.0)),
-                               "margin": float(cfg.eval.get("sensor_noise_margin", 0.0))}}
+                               "margin": float(cfg.eval.get("sensor_noise_margin", 0.0)),
+                               "filter": bool(cfg.eval.get("sensor_filter", False))}}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)

@@ -74,7 +74,9 @@ def markdown(report: dict, title: str) -> str:
                   + (f"correlated over {noise['tau']:g} s" if noise.get("tau") else "white, drawn each step")
                   + "); the simulation runs on the true state"
                   + (f"; the safety layer and the stopping envelope keep {noise['margin']:g} standard deviations of it as "
-                     "margin" if noise.get("margin") else "") + ".", ""]
+                     "margin" if noise.get("margin") else "")
+                  + ("; a Kalman filter tracks the measurements and the controllers act on its estimates"
+                     if noise.get("filter") else "") + ".", ""]
     # the speed-mode-95 override rate only where the env ran with sumo_safety
     cols = MD_COLUMNS if report.get("sumo_safety") else tuple(c for c in MD_COLUMNS if c[0] != "override_rate")
     lines.append("| profile | " + " | ".join(c[1] for c in cols) + " |")

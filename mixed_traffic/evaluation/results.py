@@ -198,6 +198,7 @@ def generalization_table(dirs) -> str:
     for _, g in runs:  # written before the link was an option: the perfect link
         g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
         g.setdefault("sensor_noise", {"gap": 0.0, "speed": 0.0, "tau": 0.0, "margin": 0.0})  # and exact measurements
+        g["sensor_noise"].setdefault("filter", False)  # and no filter
     ref_dir, ref = runs[0]
     for d, g in runs[1:]:
         for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise"):
@@ -219,6 +220,7 @@ def generalization_table(dirs) -> str:
                                  if link["delay"] or link["loss"] else "")
              + (f"; measured with noise of {noise['gap']:g} m and {noise['speed']:g} m/s"
                 + (f" correlated over {noise['tau']:g} s" if noise.get("tau") else "")
+                + (", filtered" if noise.get("filter") else "")
                 + (f", the layer's and envelope's margin {noise['margin']:g} standard deviations" if noise.get("margin") else "")
                 if noise["gap"] or noise["speed"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

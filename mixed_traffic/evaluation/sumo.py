@@ -131,7 +131,7 @@ def run_profile_sumo(cfg: DictConfig, policy, profile: str, *, episodes: int, se
             torch.manual_seed(seed)
             with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
                 td = env.rollout(env.base_env.scenario.max_steps, pol, break_when_any_done=False)
-            keep = [("next", k) for k in ("done", "collision", "reward", "cav", "traffic", "safety", "sensor_noise")]
+            keep = [("next", k) for k in ("done", "collision", "reward", "cav", "traffic", "safety", "sensor_noise", "sensor_filter")]
             td = td.select(*keep, strict=False)
             # ParallelEnv of batch-[1] envs: [workers, 1, T] -> [workers, T], the harness's layout
             tds.append(td.reshape(-1, td.shape[-1]))

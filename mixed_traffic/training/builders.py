@@ -132,6 +132,25 @@ def _v2v_channel(tcfg, env):
                       loss=float(c.loss), seed=seed % 2**63)
 
 
+def _sensor_noise(tcfg, env):
+    from torchrl.envs import Compose
+
+    from transforms import MeasurementFilter, SensorNoise
+
+    c, sc = tcfg.sensor_noise, env.scenario
+    rng = getattr(env, "rng", None)  # the env's generator: its seed sets the worker's own draws
+    seed = int(c.seed) + (int(rng.initial_seed()) if isinstance(rng, torch.Generator) else 0)
+    layout = dict(observation=sc.observation, s_max=float(sc.s_max), dt=float(sc.dt))
+    try:
+        noise = SensorNoise(float(c.gap), float(c.speed), seed=seed % 2**63, tau=float(c.tau), **layout)
+        if not c.filter:
+            return noise
+        return Compose(noise, MeasurementFilter(float(c.gap), float(c.speed), tau=float(c.tau),
+                                                leader_is_head=tuple(i == 1 for i in sc.cav_indices), **layout))
+    except ValueError as err:
+        raise ValueError(f"transforms.sensor_noise: {err}") from None
+
+
 def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
 
@@ -259,13 +278,15 @@ TRANSFORMS: dict[str, Callable] = {
     "jerk_penalty": _jerk_penalty,
     "jerk_limit": _jerk_limit,
     "v2v_channel": _v2v_channel,
+    "sensor_noise": _sensor_noise,
     "state_discretizer": _state_discretizer,
     "barrier_force": _barrier_force,
     "residual_nmpc": _residual_nmpc,
     "conflict_cost": _conflict_cost,
 }
 #: transforms that shape training only; the evaluation runs the env without them
-TRAINING_ONLY = ("conflict_cost", "jerk_penalty", "v2v_channel")  # v2v_channel: eval.v2v_* sets the evaluated link
+TRAINING_ONLY = ("conflict_cost", "jerk_penalty", "v2v_channel", "sensor_noise")  # the evaluated link and noise:
+# eval.v2v_* and eval.sensor_noise_*
 DEPLOY_AWARE = ("residual_idm",)  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
 
 
@@ -297,12 +318,12 @@ def chain_transforms(cfg: DictConfig, base: EnvBase, *, without: tuple[str, ...]
     """``cfg.transforms.chain`` less ``without``, built for ``base`` (``deploy`` as in :func:`make_transformed_env`),
     then ``EpisodeRewardSum`` and ``StepCounter``: what :func:`make_transformed_env` wraps its env in, and what the
     SUMO evaluation wraps its ``ParallelEnv`` of SUMO rings in, so both evaluate the same chain."""
-    tcfg = noise_margined(cfg) if deploy else cfg.transforms
-    ts = [TRANSFORMS[name](tcfg, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
-          for name in cfg.transforms.chain if name not in without]
-    for measured in ((eval_v2v_channel(cfg, base), eval_sensor_noise(cfg, base)) if deploy else ()):
-        if measured is not None:
-            ts.insert(0, measured)
+    measured = (eval_sensor_noise(cfg, base), eval_v2v_channel(cfg, base), eval_measurement_filter(cfg, base)) \
+        if deploy else (None, None, None)
+    tcfg = noise_margined(cfg, measured[2]) if deploy else cfg.transforms
+    ts = [m for m in measured if m is not None]
+    ts += [TRANSFORMS[name](tcfg, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
+           for name in cfg.transforms.chain if name not in without]
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return Compose(*ts)
 
@@ -321,11 +342,12 @@ def eval_v2v_channel(cfg: DictConfig, base: EnvBase):
     return V2VChannel(delay_steps=v2v_delay_steps(delay, float(base.scenario.dt)), loss=loss, seed=int(e.seed))
 
 
-def noise_margined(cfg: DictConfig) -> DictConfig:
+def noise_margined(cfg: DictConfig, measurement_filter=None) -> DictConfig:
     """``cfg.transforms`` with the safety layer's and the residual envelope's measurement margins set to
     ``eval.sensor_noise_margin`` standard deviations of the evaluation's noise (``k * eval.sensor_noise_gap`` m,
     ``k * eval.sensor_noise_speed`` m/s), added to any margins they already have; ``cfg.transforms`` itself
-    when ``k`` is 0 or there is no noise."""
+    when ``k`` is 0 or there is no noise. Behind a :class:`transforms.MeasurementFilter` the standard deviations
+    are its estimates' (``posterior_std``: the gap's, and the larger of the own and the leader's speed's)."""
     from omegaconf import OmegaConf, open_dict
 
     e = cfg.get("eval")
@@ -333,6 +355,9 @@ def noise_margined(cfg: DictConfig) -> DictConfig:
     gap, speed = (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
     if k == 0.0 or (gap == 0.0 and speed == 0.0):
         return cfg.transforms
+    if measurement_filter is not None:
+        stds = [measurement_filter.posterior_std[f] for f in set(measurement_filter.leader_is_head)]
+        gap, speed = max(s[0] for s in stds), max(max(s[1], s[2]) for s in stds)
     tcfg = OmegaConf.create(OmegaConf.to_container(cfg.transforms, resolve=True))
     with open_dict(tcfg):
         for node in ("safety_layer", "residual"):
@@ -363,6 +388,31 @@ def eval_sensor_noise(cfg: DictConfig, base: EnvBase):
                            dt=float(sc.dt))
     except ValueError as err:  # the env's observation is one the noise cannot move
         raise ValueError(f"eval.sensor_noise_*: {err}") from None
+
+
+def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
+    """The evaluation's Kalman filter of the noisy measurements (``eval.sensor_filter``) as a
+    :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_noise_*``, or None when it is off or there
+    is no noise to filter."""
+    from transforms import MeasurementFilter
+
+    e = cfg.get("eval")
+    if e is None or not bool(e.get("sensor_filter", False)):
+        return None
+    gap, speed = float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0))
+    if gap == 0.0 and speed == 0.0:
+        return None
+    sc = base.scenario
+    delay, loss = float(e.get("v2v_delay", 0.0)), float(e.get("v2v_loss", 0.0))
+    # how far the leader's acceleration may be from the one received: the filter's default for the perfect
+    # link, more for a lossy one (a lost message holds the last); a late or dead link is not read at all, and the
+    # leader may then brake or speed up as hard as any car (the leader's speed is then followed about as
+    # closely as measured: a filter that waits for the speeds to confirm a brake is late behind a hard one)
+    link = {} if delay == 0.0 and loss == 0.0 else {"leader_accel_std": 0.5} if delay == 0.0 and loss < 1.0 \
+        else {"leader_accel_key": None, "leader_accel_std": 10.0}
+    return MeasurementFilter(gap, speed, tau=float(e.get("sensor_noise_tau", 0.0)), dt=float(sc.dt),
+                             observation=sc.observation, s_max=float(sc.s_max),
+                             leader_is_head=tuple(i == 1 for i in sc.cav_indices), **link)
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
