@@ -94,15 +94,21 @@ class MeasurementFilter(Transform):
             acceleration too); one flag for every CAV, or a tuple with one per CAV.
         own_accel_std: how far the CAV's executed acceleration may be from ``("cav", "accel")`` (m/s^2, > 0).
         leader_accel_std: how far the leader's may be from the one received over V2V, or from 0 when nothing
-            is received (m/s^2, > 0): small for a fresh link; large without one, where only the measured speeds
-            tell a hard brake (at 1 m/s^2 the estimate falls metres per second behind a leader braking at
-            several).
+            is received (m/s^2, > 0).
         head_accel_std: the head's acceleration where nothing is received of it (m/s^2, > 0).
         gap_drift_std: how far a gap may move in one step beyond what the speeds explain (m, > 0).
         leader_accel_key: where the leader's received acceleration is (None: nothing is received; the leader
-            then moves as ``leader_accel_std`` allows, and the head as ``head_accel_std`` does). The defaults of the three accelerations suit
-            exact V2V and an actuator that does what it is told: raise ``leader_accel_std`` for a late or lossy
-            link (the evaluation does, see :func:`mixed_traffic.training.builders.eval_measurement_filter`).
+            then moves as ``leader_accel_std`` allows, and the head as ``head_accel_std`` does).
+
+    The accelerations' defaults suit exact V2V and an actuator that does what it is told. The evaluation
+    (:func:`mixed_traffic.training.builders.eval_measurement_filter`) trusts a lossy link less
+    (``leader_accel_std=0.5``) and does not read a late or dead one (``leader_accel_key=None``,
+    ``leader_accel_std=10``): a stale acceleration that says the leader cruises while it brakes puts the
+    estimate metres per second behind it.
+
+    Attributes:
+        posterior_std: ``{leader_is_head flag: [gap, speed, leader_speed, head_gap, head_speed]}``, the steady
+            state's standard deviation of each estimate's error (m, m/s).
 
     Example:
         >>> import torch
