@@ -141,12 +141,13 @@ def case_names(requested: list[str], all_cases: dict) -> list[str]:
 
 
 def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int, v2v=(0.0, 0.0),
-                noise=(0.0, 0.0, 0.0, 0.0), sensor_filter: bool = False):
+                noise=(0.0, 0.0, 0.0, 0.0), sensor_filter: bool = False, filter_model=None):
     """The run's config set to evaluate ``case``; ``v2v``: ``(eval.v2v_delay, eval.v2v_loss)``, the V2V link
     every controller of the case receives its leader's acceleration over; ``noise``: ``(eval.sensor_noise_gap,
     eval.sensor_noise_speed, eval.sensor_noise_tau, eval.sensor_noise_margin)``, the noise on what every controller
     measures and the margin the run's safety layer and envelope keep for it; ``sensor_filter``: every controller
-    acts on a Kalman filter's estimates of its measurements (``eval.sensor_filter``)."""
+    acts on a Kalman filter's estimates of its measurements (``eval.sensor_filter``), assuming the noise
+    ``filter_model`` (``(gap, speed, tau)``, ``eval.sensor_filter_*``; None: the noise drawn)."""
     from omegaconf import OmegaConf, open_dict
 
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
@@ -160,6 +161,8 @@ def case_config(run_cfg, case: dict, *, episodes: int, seconds: float, seed: int
         (cfg.eval.sensor_noise_gap, cfg.eval.sensor_noise_speed, cfg.eval.sensor_noise_tau,
          cfg.eval.sensor_noise_margin) = (float(x) for x in noise)
         cfg.eval.sensor_filter = bool(sensor_filter)
+        if filter_model is not None:
+            cfg.eval.sensor_filter_gap, cfg.eval.sensor_filter_speed, cfg.eval.sensor_filter_tau = map(float, filter_model)
         for k, v in case.get("eval", {}).items():
             cfg.eval[k] = v
         for k, v in case.get("env", {}).items():
@@ -229,6 +232,8 @@ def main(argv=None) -> dict:
     p.add_argument("--sensor-filter", action="store_true",
                    help="every controller acts on a Kalman filter's estimates of its noisy measurements "
                         "(eval.sensor_filter); the margin then counts the estimates' standard deviations")
+    p.add_argument("--sensor-filter-model", type=float, nargs=3, default=None, metavar=("GAP", "SPEED", "TAU"),
+                   help="the noise the filter assumes, where not the noise drawn (eval.sensor_filter_gap / _speed / _tau)")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -261,18 +266,20 @@ def main(argv=None) -> dict:
     v2v, noise = (a.v2v_delay, a.v2v_loss), (*a.sensor_noise, a.sensor_noise_tau, a.sensor_noise_margin)
     try:
         validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v,
-                                    noise=noise, sensor_filter=a.sensor_filter))
+                                    noise=noise, sensor_filter=a.sensor_filter, filter_model=a.sensor_filter_model))
     except ConfigError as e:
         flag = {"eval.v2v_delay": "--v2v-delay", "eval.v2v_loss": "--v2v-loss", "eval.sensor_noise_gap": "--sensor-noise GAP",
                 "eval.sensor_noise_speed": "--sensor-noise SPEED", "eval.sensor_noise_tau": "--sensor-noise-tau",
-                "eval.sensor_noise_margin": "--sensor-noise-margin"}.get(e.field, e.field)
+                "eval.sensor_noise_margin": "--sensor-noise-margin", "eval.sensor_filter_gap": "--sensor-filter-model GAP",
+                "eval.sensor_filter_speed": "--sensor-filter-model SPEED",
+                "eval.sensor_filter_tau": "--sensor-filter-model TAU"}.get(e.field, e.field)
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}
     for name in names:
         case = all_cases[name]
         settings = dict(episodes=a.episodes, seconds=a.seconds, seed=a.seed, v2v=v2v, noise=noise,
-                        sensor_filter=a.sensor_filter)
+                        sensor_filter=a.sensor_filter, filter_model=a.sensor_filter_model)
         cfg = case_config(run_cfg, case, **settings)
         rep, tr = evaluate(cfg, policy_factory=factory)
         prof = case["profile"]
@@ -308,7 +315,9 @@ def main(argv=None) -> dict:
                                                          "seconds": a.seconds, "seed": a.seed,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
                                                          "sensor_noise": {"gap": noise[0], "speed": noise[1], "tau": noise[2],
-                                                                          "margin": noise[3], "filter": a.sensor_filter},
+                                                                          "margin": noise[3], "filter": a.sensor_filter,
+                                                                          **({"filter_model": dict(zip(("gap", "speed", "tau"), a.sensor_filter_model))}
+                                                                             if a.sensor_filter and a.sensor_filter_model else {})},
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

@@ -738,6 +738,11 @@ class EvalConfig:
     # on its estimates; its model is the noise above; sensor_noise_margin then counts the estimates' standard
     # deviations instead of the sensor's; without noise it does nothing
     sensor_filter: bool = False
+    # the noise the filter assumes, where it is not the noise drawn (null: sensor_noise_gap / _speed / _tau): a
+    # deployed filter's model is an estimate of its sensors
+    sensor_filter_gap: float | None = None
+    sensor_filter_speed: float | None = None
+    sensor_filter_tau: float | None = None
 
 
 # ----------------------------------------------------------------------------- top level

@@ -213,3 +213,20 @@ def test_training_noise_settings_are_checked_at_start_up():
         validate_config(compose([*TRAIN_NOISE, "transforms.sensor_noise.gap=-1.0"]))
     with pytest.raises(ConfigError, match=r"transforms.sensor_noise.tau: 100.0 is out of range"):
         validate_config(compose([*TRAIN_NOISE, "transforms.sensor_noise.tau=100.0"]))
+
+
+def test_the_filter_can_assume_another_noise_than_the_one_drawn(tmp_path):
+    from mixed_traffic.evaluation import evaluate_and_report
+    from mixed_traffic.validation import ConfigError, validate_config
+
+    noisy = ["experiment=ring_lagrangian_ppo", "eval.sensor_noise_gap=1.0", "eval.sensor_noise_speed=0.3",
+             "eval.sensor_noise_tau=1.0", "eval.sensor_filter=true"]
+    f = make_transformed_env(compose([*noisy, "eval.sensor_filter_gap=0.3"]), num_envs=1, seed=0, deploy=True).transform[1]
+    assert isinstance(f, MeasurementFilter) and (f.gap_std, f.speed_std, f.tau) == (0.3, 0.3, 1.0)  # the rest: drawn
+    short = [*noisy, "transforms=reward", "controller=idm", "eval.episodes=1", "eval.episode_seconds=20.0",
+             "eval.warmup_seconds=5.0", "eval.profiles=[sine]", "eval.sensor_filter_tau=0.0"]
+    rep = evaluate_and_report(compose(short), tmp_path)
+    assert rep["sensor_noise"]["filter_model"] == {"gap": 1.0, "speed": 0.3, "tau": 0.0}
+    assert "it assumes errors of 1 m and 0.3 m/s over 0 s" in Path(rep["paths"]["md"]).read_text()
+    with pytest.raises(ConfigError, match=r"eval.sensor_filter_speed: -0.1 is out of range; allowed: a number in \[0, 5\] or null"):
+        validate_config(compose([*noisy, "eval.sensor_filter_speed=-0.1"]))

@@ -83,6 +83,16 @@ METRIC_KEYS = ("done", "collision", "reward", ("traffic", "time"), ("traffic", "
                ("sensor_filter", "head_speed"))
 
 
+def filter_model(e) -> dict:
+    """``{"filter_model": {gap, speed, tau}}`` where ``e.sensor_filter_*`` sets a noise model of the filter other
+    than the noise drawn, else ``{}`` (the filter assumes the noise it filters)."""
+    keys = ("gap", "speed", "tau")
+    if not e.get("sensor_filter", False) or all(e.get(f"sensor_filter_{k}") is None for k in keys):
+        return {}
+    return {"filter_model": {k: float(e.get(f"sensor_noise_{k}", 0.0) if e.get(f"sensor_filter_{k}") is None
+                                      else e.get(f"sensor_filter_{k}")) for k in keys}}
+
+
 def rollout_for_metrics(env, policy, steps: int, callback=None) -> TensorDictBase:
     """``env.rollout(steps, policy, break_when_any_done=False)`` keeping only :data:`METRIC_KEYS`.
 
@@ -382,7 +392,8 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
                                "speed": float(cfg.eval.get("sensor_noise_speed", 0.0)),
                                "tau": float(cfg.eval.get("sensor_noise_tau", 0.0)),
                                "margin": float(cfg.eval.get("sensor_noise_margin", 0.0)),
-                               "filter": bool(cfg.eval.get("sensor_filter", False))}}
+                               "filter": bool(cfg.eval.get("sensor_filter", False)),
+                               **filter_model(cfg.eval)}}
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)

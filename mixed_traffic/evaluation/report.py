@@ -76,7 +76,9 @@ def markdown(report: dict, title: str) -> str:
                   + (f"; the safety layer and the stopping envelope keep {noise['margin']:g} standard deviations of it as "
                      "margin" if noise.get("margin") else "")
                   + ("; a Kalman filter tracks the measurements and the controllers act on its estimates"
-                     if noise.get("filter") else "") + ".", ""]
+                     if noise.get("filter") else "")
+                  + (" (it assumes errors of {gap:g} m and {speed:g} m/s over {tau:g} s)".format(**noise["filter_model"])
+                     if noise.get("filter_model") else "") + ".", ""]
     # the speed-mode-95 override rate only where the env ran with sumo_safety
     cols = MD_COLUMNS if report.get("sumo_safety") else tuple(c for c in MD_COLUMNS if c[0] != "override_rate")
     lines.append("| profile | " + " | ".join(c[1] for c in cols) + " |")

@@ -392,8 +392,8 @@ def eval_sensor_noise(cfg: DictConfig, base: EnvBase):
 
 def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     """The evaluation's Kalman filter of the noisy measurements (``eval.sensor_filter``) as a
-    :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_noise_*``, or None when it is off or there
-    is no noise to filter."""
+    :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_filter_gap`` / ``_speed`` / ``_tau`` where
+    set, ``eval.sensor_noise_*`` where null, or None when it is off or there is no noise to filter."""
     from transforms import MeasurementFilter
 
     e = cfg.get("eval")
@@ -410,7 +410,9 @@ def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     # closely as measured: a filter that waits for the speeds to confirm a brake is late behind a hard one)
     link = {} if delay == 0.0 and loss == 0.0 else {"leader_accel_std": 0.5} if delay == 0.0 and loss < 1.0 \
         else {"leader_accel_key": None, "leader_accel_std": 10.0}
-    return MeasurementFilter(gap, speed, tau=float(e.get("sensor_noise_tau", 0.0)), dt=float(sc.dt),
+    model = {k: float(e.get(f"sensor_noise_{k}", 0.0)) if e.get(f"sensor_filter_{k}") is None
+             else float(e.get(f"sensor_filter_{k}")) for k in ("gap", "speed", "tau")}
+    return MeasurementFilter(model["gap"], model["speed"], tau=model["tau"], dt=float(sc.dt),
                              observation=sc.observation, s_max=float(sc.s_max),
                              leader_is_head=tuple(i == 1 for i in sc.cav_indices), **link)
 
