@@ -230,3 +230,10 @@ def test_the_filter_can_assume_another_noise_than_the_one_drawn(tmp_path):
     assert "it assumes errors of 1 m and 0.3 m/s over 0 s" in Path(rep["paths"]["md"]).read_text()
     with pytest.raises(ConfigError, match=r"eval.sensor_filter_speed: -0.1 is out of range; allowed: a number in \[0, 5\] or null"):
         validate_config(compose([*noisy, "eval.sensor_filter_speed=-0.1"]))
+
+
+def test_a_filter_told_the_wrong_layout_says_so():
+    base = make_env("ring", batch_size=1, seed=0, **RING)  # observation="relative": 7 features a CAV
+    env = TransformedEnv(base, Compose(SensorNoise(0.5, 0.1), MeasurementFilter(0.5, 0.1, observation="relative_accel")))
+    with pytest.raises(RuntimeError, match="MeasurementFilter: the observation has 7 features, the 'relative_accel' layout 8"):
+        env.rollout(2, lambda td: td.set("action", torch.zeros(1, 1)))

@@ -222,7 +222,8 @@ class MeasurementFilter(Transform):
         td.set(STEPS, steps)
         obs = td.get("observation", None)
         if obs is not None:
-            td.set("observation", obs + observation_shift(delta, obs, observation=self.observation, s_max=self.s_max))
+            td.set("observation", obs + observation_shift(delta, obs, observation=self.observation, s_max=self.s_max,
+                                                                  who="MeasurementFilter"))
         return td
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:

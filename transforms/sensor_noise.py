@@ -24,7 +24,8 @@ GAPS = (("cav", "gap"), ("cav", "head_gap"))
 SPEEDS = (("cav", "speed"), ("cav", "leader_speed"), ("cav", "head_speed"))
 
 
-def observation_shift(delta: dict, obs: torch.Tensor, *, observation: str, s_max: float) -> torch.Tensor:
+def observation_shift(delta: dict, obs: torch.Tensor, *, observation: str, s_max: float,
+                      who: str = "SensorNoise") -> torch.Tensor:
     """How :func:`~mixed_traffic.envs.traffic.observe`'s ``observation`` layout moves when the measured entries
     move by ``delta`` (``{key: change}`` over :data:`GAPS` and :data:`SPEEDS`). The features are linear in the
     measurements, so the change is the features of ``delta`` itself, with the uniform-flow speed and the own
@@ -41,7 +42,7 @@ def observation_shift(delta: dict, obs: torch.Tensor, *, observation: str, s_max
         feats.append(torch.zeros_like(v))
     shift = torch.stack(feats, -1).flatten(-2)
     if shift.shape[-1] != obs.shape[-1]:
-        raise RuntimeError(f"the observation has {obs.shape[-1]} features, the {observation!r} layout "
+        raise RuntimeError(f"{who}: the observation has {obs.shape[-1]} features, the {observation!r} layout "
                            f"{shift.shape[-1]}; pass the env's own observation")
     return shift
 
