@@ -314,10 +314,7 @@ def main(argv=None) -> dict:
     (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
                                                          "seconds": a.seconds, "seed": a.seed,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
-                                                         "sensor_noise": {"gap": noise[0], "speed": noise[1], "tau": noise[2],
-                                                                          "margin": noise[3], "filter": a.sensor_filter,
-                                                                          **({"filter_model": dict(zip(("gap", "speed", "tau"), a.sensor_filter_model))}
-                                                                             if a.sensor_filter and a.sensor_filter_model else {})},
+                                                         "sensor_noise": rep["sensor_noise"],  # as the evaluation ran it
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

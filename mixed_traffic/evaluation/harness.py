@@ -51,7 +51,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_transformed_env
+from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_transformed_env, sensor_filter_model
 
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
            "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after", "return", "mean_J", "safety_clip_rate",
@@ -86,11 +86,9 @@ METRIC_KEYS = ("done", "collision", "reward", ("traffic", "time"), ("traffic", "
 def filter_model(e) -> dict:
     """``{"filter_model": {gap, speed, tau}}`` where ``e.sensor_filter_*`` sets a noise model of the filter other
     than the noise drawn, else ``{}`` (the filter assumes the noise it filters)."""
-    keys = ("gap", "speed", "tau")
-    if not e.get("sensor_filter", False) or all(e.get(f"sensor_filter_{k}") is None for k in keys):
+    if not e.get("sensor_filter", False) or all(e.get(f"sensor_filter_{k}") is None for k in ("gap", "speed", "tau")):
         return {}
-    return {"filter_model": {k: float(e.get(f"sensor_noise_{k}", 0.0) if e.get(f"sensor_filter_{k}") is None
-                                      else e.get(f"sensor_filter_{k}")) for k in keys}}
+    return {"filter_model": sensor_filter_model(e)}
 
 
 def rollout_for_metrics(env, policy, steps: int, callback=None) -> TensorDictBase:

@@ -132,21 +132,43 @@ def _v2v_channel(tcfg, env):
                       loss=float(c.loss), seed=seed % 2**63)
 
 
+def measurement_filter_for(sc, gap: float, speed: float, tau: float, **kwargs):
+    """A :class:`transforms.MeasurementFilter` of ``gap`` m / ``speed`` m/s errors over ``tau`` s laid out for the
+    scenario ``sc`` (its observation, ``s_max``, step, and which CAVs follow the head directly); ``kwargs`` go
+    to the filter (its link settings)."""
+    from transforms import MeasurementFilter
+
+    return MeasurementFilter(gap, speed, tau=tau, dt=float(sc.dt), observation=sc.observation, s_max=float(sc.s_max),
+                             leader_is_head=tuple(i == 1 for i in sc.cav_indices), **kwargs)
+
+
+def sensor_filter_model(e) -> dict:
+    """The noise the evaluation's filter assumes: ``{gap, speed, tau}`` from ``e.sensor_filter_*`` where set,
+    from ``e.sensor_noise_*`` (the noise drawn) where null (``e``: the ``eval`` node)."""
+    return {k: float(e.get(f"sensor_noise_{k}", 0.0) if e.get(f"sensor_filter_{k}") is None else e.get(f"sensor_filter_{k}"))
+            for k in ("gap", "speed", "tau")}
+
+
+def _eval_noise(cfg: DictConfig) -> tuple[float, float]:
+    """``(eval.sensor_noise_gap, eval.sensor_noise_speed)``, (0, 0) without an ``eval`` node."""
+    e = cfg.get("eval")
+    return (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
+
+
 def _sensor_noise(tcfg, env):
     from torchrl.envs import Compose
 
-    from transforms import MeasurementFilter, SensorNoise
+    from transforms import SensorNoise
 
     c, sc = tcfg.sensor_noise, env.scenario
     rng = getattr(env, "rng", None)  # the env's generator: its seed sets the worker's own draws
     seed = int(c.seed) + (int(rng.initial_seed()) if isinstance(rng, torch.Generator) else 0)
-    layout = dict(observation=sc.observation, s_max=float(sc.s_max), dt=float(sc.dt))
     try:
-        noise = SensorNoise(float(c.gap), float(c.speed), seed=seed % 2**63, tau=float(c.tau), **layout)
+        noise = SensorNoise(float(c.gap), float(c.speed), seed=seed % 2**63, tau=float(c.tau), dt=float(sc.dt),
+                            observation=sc.observation, s_max=float(sc.s_max))
         if not c.filter:
             return noise
-        return Compose(noise, MeasurementFilter(float(c.gap), float(c.speed), tau=float(c.tau),
-                                                leader_is_head=tuple(i == 1 for i in sc.cav_indices), **layout))
+        return Compose(noise, measurement_filter_for(sc, float(c.gap), float(c.speed), float(c.tau)))
     except ValueError as err:
         raise ValueError(f"transforms.sensor_noise: {err}") from None
 
@@ -352,7 +374,7 @@ def noise_margined(cfg: DictConfig, measurement_filter=None) -> DictConfig:
 
     e = cfg.get("eval")
     k = 0.0 if e is None else float(e.get("sensor_noise_margin", 0.0))
-    gap, speed = (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
+    gap, speed = _eval_noise(cfg)
     if k == 0.0 or (gap == 0.0 and speed == 0.0):
         return cfg.transforms
     if measurement_filter is not None:
@@ -375,7 +397,7 @@ def eval_sensor_noise(cfg: DictConfig, base: EnvBase):
     from transforms import SensorNoise
 
     e = cfg.get("eval")
-    gap, speed = (0.0, 0.0) if e is None else (float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0)))
+    gap, speed = _eval_noise(cfg)
     if gap == 0.0 and speed == 0.0:
         return None
     Real(0, 10)("eval.sensor_noise_gap", gap)
@@ -394,15 +416,9 @@ def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     """The evaluation's Kalman filter of the noisy measurements (``eval.sensor_filter``) as a
     :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_filter_gap`` / ``_speed`` / ``_tau`` where
     set, ``eval.sensor_noise_*`` where null, or None when it is off or there is no noise to filter."""
-    from transforms import MeasurementFilter
-
     e = cfg.get("eval")
-    if e is None or not bool(e.get("sensor_filter", False)):
+    if e is None or not bool(e.get("sensor_filter", False)) or _eval_noise(cfg) == (0.0, 0.0):
         return None
-    gap, speed = float(e.get("sensor_noise_gap", 0.0)), float(e.get("sensor_noise_speed", 0.0))
-    if gap == 0.0 and speed == 0.0:
-        return None
-    sc = base.scenario
     delay, loss = float(e.get("v2v_delay", 0.0)), float(e.get("v2v_loss", 0.0))
     # how far the leader's acceleration may be from the one received: the filter's default for the perfect
     # link, more for a lossy one (a lost message holds the last); a late or dead link is not read at all, and the
@@ -410,11 +426,8 @@ def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     # closely as measured: a filter that waits for the speeds to confirm a brake is late behind a hard one)
     link = {} if delay == 0.0 and loss == 0.0 else {"leader_accel_std": 0.5} if delay == 0.0 and loss < 1.0 \
         else {"leader_accel_key": None, "leader_accel_std": 10.0}
-    model = {k: float(e.get(f"sensor_noise_{k}", 0.0)) if e.get(f"sensor_filter_{k}") is None
-             else float(e.get(f"sensor_filter_{k}")) for k in ("gap", "speed", "tau")}
-    return MeasurementFilter(model["gap"], model["speed"], tau=model["tau"], dt=float(sc.dt),
-                             observation=sc.observation, s_max=float(sc.s_max),
-                             leader_is_head=tuple(i == 1 for i in sc.cav_indices), **link)
+    model = sensor_filter_model(e)
+    return measurement_filter_for(base.scenario, model["gap"], model["speed"], model["tau"], **link)
 
 
 def desynchronize(env: EnvBase, seed: int) -> bool:
