@@ -14,6 +14,12 @@ its leader's, received over V2V (``("cav", "leader_accel")``, degraded by :class
 it stands before this transform); the head's acceleration too where the head is the CAV's leader. The motion
 is the env's Euler rule (``v' = v + a dt``, ``gap' = gap + (v_l' - v') dt``).
 
+Over a late link (``leader_accel_delay`` steps late) the received acceleration is the leader's of that long
+ago, so it cannot drive the prediction. The filter then carries the leader's accelerations of the last
+``leader_accel_delay + 1`` steps as states: the newest moves the leader and changes from step to step by up
+to ``leader_jerk_std``, and the received value is a measurement of the oldest. The leader's speed measurements
+tell the filter what the leader has done since; the late message pins down what it did before.
+
 The model is linear and time-invariant, so the error covariance does not depend on the data, only on the
 time since the reset: the gains of every step are computed once at construction (the Riccati recursion from
 the first measurement's covariance, until it reaches the steady state of the discrete Riccati equation), and
@@ -99,12 +105,17 @@ class MeasurementFilter(Transform):
         gap_drift_std: how far a gap may move in one step beyond what the speeds explain (m, > 0).
         leader_accel_key: where the leader's received acceleration is (None: nothing is received; the leader
             then moves as ``leader_accel_std`` allows, and the head as ``head_accel_std`` does).
+        leader_accel_delay: how many steps late the received acceleration arrives (an integer >= 0, the
+            :class:`transforms.V2VChannel`'s ``delay_steps``); > 0 needs ``leader_accel_key`` and uses the
+            delayed-link model above (``leader_accel_std`` is then unused).
+        leader_jerk_std: over a late link, how far the leader's acceleration may change in one step (m/s^2, > 0).
 
     The accelerations' defaults suit exact V2V and an actuator that does what it is told. The evaluation
     (:func:`mixed_traffic.training.builders.eval_measurement_filter`) trusts a lossy link less
-    (``leader_accel_std=0.5``) and does not read a late or dead one (``leader_accel_key=None``,
-    ``leader_accel_std=10``): a stale acceleration that says the leader cruises while it brakes puts the
-    estimate metres per second behind it.
+    (``leader_accel_std=0.5``), reads a late one with the delayed-link model (``leader_accel_delay``), and does
+    not read a dead one, or one both late and lossy (``leader_accel_key=None``, ``leader_accel_std=10``). A
+    stale acceleration taken for the present says the leader cruises while it brakes, and puts the estimate
+    metres per second behind it.
 
     Attributes:
         posterior_std: ``{leader_is_head flag: [gap, speed, leader_speed, head_gap, head_speed]}``, the steady
@@ -130,12 +141,19 @@ class MeasurementFilter(Transform):
     def __init__(self, gap_std: float = 0.0, speed_std: float = 0.0, *, tau: float = 0.0, dt: float = 0.1,
                  observation: str = "relative", s_max: float = 40.0, leader_is_head: bool | tuple[bool, ...] = True,
                  own_accel_std: float = 0.02, leader_accel_std: float = 0.1, head_accel_std: float = 1.0,
-                 gap_drift_std: float = 0.003, leader_accel_key: NestedKey | None = LEADER_ACCEL):
+                 gap_drift_std: float = 0.003, leader_accel_key: NestedKey | None = LEADER_ACCEL,
+                 leader_accel_delay: int = 0, leader_jerk_std: float = 0.5):
+        if isinstance(leader_accel_delay, bool) or not isinstance(leader_accel_delay, int) or leader_accel_delay < 0:
+            raise ValueError(f"MeasurementFilter: leader_accel_delay={leader_accel_delay!r} is invalid; allowed: an "
+                             "integer >= 0 (steps)")
+        if leader_accel_delay > 0 and leader_accel_key is None:
+            raise ValueError("MeasurementFilter: leader_accel_delay > 0 needs a leader_accel_key (what arrives late)")
         for name, value in (("gap_std", gap_std), ("speed_std", speed_std), ("tau", tau)):
             if not float(value) >= 0.0:
                 raise ValueError(f"MeasurementFilter: {name}={value!r} is invalid; allowed: >= 0")
         for name, value in (("dt", dt), ("own_accel_std", own_accel_std), ("leader_accel_std", leader_accel_std),
-                            ("head_accel_std", head_accel_std), ("gap_drift_std", gap_drift_std)):
+                            ("head_accel_std", head_accel_std), ("gap_drift_std", gap_drift_std),
+                            ("leader_jerk_std", leader_jerk_std)):
             if not float(value) > 0.0:
                 raise ValueError(f"MeasurementFilter: {name}={value!r} is invalid; allowed: > 0")
         check_layout("MeasurementFilter", observation, s_max)
@@ -146,6 +164,8 @@ class MeasurementFilter(Transform):
         self.accel_std = (float(own_accel_std), float(leader_accel_std), float(head_accel_std))
         self.gap_drift_std = float(gap_drift_std)
         self.leader_accel_key = leader_accel_key
+        self.delay, self.leader_jerk_std = int(leader_accel_delay), float(leader_jerk_std)
+        self.n_state = 10 + (self.delay + 1 if self.delay else 0)  # + the leader's accelerations over a late link
         self._stds = [self.gap_std, self.speed_std, self.speed_std, self.gap_std, self.speed_std]  # MEASURED's
         flags = (leader_is_head,) if isinstance(leader_is_head, bool) else tuple(bool(f) for f in leader_is_head)
         self.leader_is_head = flags
@@ -153,10 +173,12 @@ class MeasurementFilter(Transform):
         for f in sorted(set(flags)):
             F, B, G, Q, H, R = self._model(f)
             K_ss, P_ss = steady_state_gain(F, G, Q, H, R)
-            S = torch.diag(torch.diagonal(R) + torch.tensor(self._stds, dtype=torch.float64) ** 2)  # the first
+            S = torch.diag(torch.diagonal(R)[:5] + torch.tensor(self._stds, dtype=torch.float64) ** 2)  # the first
             # measurement's error
-            P0 = torch.cat([torch.cat([S, -S], 1), torch.cat([-S, S], 1)])  # x = z - e, e unknown
-            self._by_flag[f] = (F, B, gain_sequence(F, G, Q, H, R, P0, K_ss), P_ss)
+            P0 = torch.zeros(self.n_state, self.n_state, dtype=torch.float64)
+            P0[:10, :10] = torch.cat([torch.cat([S, -S], 1), torch.cat([-S, S], 1)])  # x = z - e, e unknown
+            P0[10:, 10:] = torch.eye(self.n_state - 10, dtype=torch.float64)  # the leader's accelerations: 1 m/s^2
+            self._by_flag[f] = (F, B, gain_sequence(F, G, Q, H, R, P0, K_ss), P_ss, H)
         self._cache: dict = {}
         # the steady state's standard deviation of each estimate's error, in MEASURED's order, per flag
         self.posterior_std = {f: torch.sqrt(torch.diagonal(m[3])[:5]).tolist() for f, m in self._by_flag.items()}
@@ -164,31 +186,50 @@ class MeasurementFilter(Transform):
     # ------------------------------------------------------------------ the model
 
     def _model(self, head_from_leader: bool):
-        """``F``, the input matrix ``B`` (inputs: own, leader and head acceleration), ``G``, ``Q``, ``H``, ``R``."""
-        dt = self.dt
-        F = torch.eye(10, dtype=torch.float64)
+        """``F``, the input matrix ``B`` (inputs: own, leader and head acceleration), ``G``, ``Q``, ``H``, ``R``.
+
+        Over a late link (``delay`` > 0) the leader's acceleration is no input but states ``10 .. 10 + delay``
+        (the newest first), and the received value a measurement of the last."""
+        dt, n = self.dt, self.n_state
+        F = torch.eye(n, dtype=torch.float64)
         F[0, 1], F[0, 2] = -dt, dt   # gap' = gap + (v_l - v) dt + (a_l - a) dt^2
         F[3, 1], F[3, 4] = -dt, dt   # head_gap' likewise with the head
         rho = math.exp(-dt / self.tau) if self.tau > 0 else 0.0
         for i in range(5, 10):
             F[i, i] = rho
-        B = torch.zeros(10, 3, dtype=torch.float64)
+        B = torch.zeros(n, 3, dtype=torch.float64)
         B[0, 0], B[3, 0], B[1, 0] = -dt * dt, -dt * dt, dt
         B[0, 1], B[2, 1] = dt * dt, dt
         B[3, 2], B[4, 2] = dt * dt, dt
-        G = torch.zeros(10, 10, dtype=torch.float64)
+        G = torch.zeros(n, 10, dtype=torch.float64)
         G[:, :3] = B
+        if self.delay:  # the newest acceleration moves the leader (and the head) and walks by w_1 per step
+            moved = (0, 2, 3, 4) if head_from_leader else (0, 2)
+            for i in moved:
+                F[i, 10] = B[i, 1] + B[i, 2] if head_from_leader else B[i, 1]
+            G[:, 1] = F[:, 10].clone()
+            G[10, 1] = 1.0
+            B[:, 1] = 0.0
+            for j in range(1, self.delay + 1):  # the older ones shift down the line
+                F[10 + j, 10 + j] = 0.0
+                F[10 + j, 9 + j] = 1.0
         for j in range(5):
             G[5 + j, 3 + j] = 1.0
         G[0, 8], G[3, 9] = 1.0, 1.0  # the gaps' own drift (the integration's rounding, a simulator's other rule)
         stds = self._stds
         own, leader, head = self.accel_std
+        if self.delay:
+            leader = self.leader_jerk_std
         Q = torch.diag(torch.tensor([own ** 2, leader ** 2, (leader if head_from_leader else head) ** 2]
                                     + [(1.0 - rho ** 2) * s ** 2 for s in stds] + [self.gap_drift_std ** 2] * 2,
                                     dtype=torch.float64))
-        H = torch.cat([torch.eye(5, dtype=torch.float64), torch.eye(5, dtype=torch.float64)], 1)
+        m = 5 + (1 if self.delay else 0)
+        H = torch.zeros(m, n, dtype=torch.float64)
+        H[:5, :5], H[:5, 5:10] = torch.eye(5, dtype=torch.float64), torch.eye(5, dtype=torch.float64)
+        if self.delay:
+            H[5, n - 1] = 1.0  # the received value: the oldest acceleration the filter carries
         # a floor under the measurement noise: the errors are states, but a zero R with a zero std is singular
-        R = torch.diag(torch.tensor([(1e-2 * s) ** 2 + 1e-8 for s in stds], dtype=torch.float64))
+        R = torch.diag(torch.tensor([(1e-2 * s) ** 2 + 1e-8 for s in stds] + [1e-6] * (m - 5), dtype=torch.float64))
         return F, B, G, Q, H, R
 
     # ------------------------------------------------------------------ the filter
@@ -200,11 +241,11 @@ class MeasurementFilter(Transform):
                                "give one, or one per CAV")
         key = (n_cav, like.device, like.dtype)
         if key not in self._cache:
-            F, B = (torch.stack([self._by_flag[f][i] for f in flags]).to(like) for i in range(2))
+            F, B, H = (torch.stack([self._by_flag[f][i] for f in flags]).to(like) for i in (0, 1, 4))
             seqs = [self._by_flag[f][2] for f in flags]
             T = max(len(s) for s in seqs)  # padded with each one's steady state
             K = torch.stack([torch.cat([s, s[-1:].expand(T - len(s), -1, -1)]) for s in seqs], 1).to(like)
-            self._cache[key] = (F, B, K, torch.tensor(flags, device=like.device))
+            self._cache[key] = (F, B, K, torch.tensor(flags, device=like.device), H)
         return self._cache[key]
 
     def _z(self, td: TensorDictBase) -> torch.Tensor:
@@ -229,7 +270,17 @@ class MeasurementFilter(Transform):
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         z = self._z(tensordict_reset)
         steps = torch.zeros(z.shape[:-1], dtype=torch.int64, device=z.device)
-        return self._write(tensordict_reset, torch.cat([z, torch.zeros_like(z)], -1), steps, z)
+        state = [z, torch.zeros_like(z)]
+        if self.delay:  # the leader's last accelerations: the one received at the reset
+            state.append(self._received(tensordict_reset).unsqueeze(-1).expand(*z.shape[:-1], self.delay + 1))
+        return self._write(tensordict_reset, torch.cat(state, -1), steps, z)
+
+    def _received(self, td: TensorDictBase) -> torch.Tensor | None:
+        a_l = None if self.leader_accel_key is None else td.get(self.leader_accel_key, None)
+        if a_l is None and self.leader_accel_key is not None:
+            raise RuntimeError(f"MeasurementFilter: no {self.leader_accel_key!r} in the env's output; pass "
+                               "leader_accel_key=None for a CAV that receives nothing over V2V")
+        return a_l
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         prev = tensordict.get(STATE, None)
@@ -237,21 +288,20 @@ class MeasurementFilter(Transform):
             raise RuntimeError("MeasurementFilter: the step's input has no filter state; reset the env through "
                                "the TransformedEnv before stepping it")
         z = self._z(next_tensordict)
-        F, B, K, flags = self._matrices(z.shape[-2], z)
+        F, B, K, flags, H = self._matrices(z.shape[-2], z)
         a = next_tensordict.get(OWN_ACCEL)
-        a_l = None if self.leader_accel_key is None else next_tensordict.get(self.leader_accel_key, None)
-        if a_l is None and self.leader_accel_key is not None:
-            raise RuntimeError(f"MeasurementFilter: no {self.leader_accel_key!r} in the step's output; pass "
-                               "leader_accel_key=None for a CAV that receives nothing over V2V")
-        a_l = torch.zeros_like(a) if a_l is None else a_l
+        received = self._received(next_tensordict)
+        a_l = torch.zeros_like(a) if received is None or self.delay else received  # late: a measurement, no input
         a_h = torch.where(flags, a_l, torch.zeros_like(a_l))
         u = torch.stack([a, a_l, a_h], -1)  # [..., n_cav, 3]
         prior = (F @ prev.unsqueeze(-1)).squeeze(-1) + (B @ u.unsqueeze(-1)).squeeze(-1)
-        innovation = z - prior[..., :5] - prior[..., 5:]
+        if self.delay:
+            z = torch.cat([z, received.unsqueeze(-1)], -1)
+        innovation = z - (H @ prior.unsqueeze(-1)).squeeze(-1)
         age = tensordict.get(STEPS).clamp_max(K.shape[0] - 1)  # the gain of step age + 1 is K[age]
-        gain = K[age, torch.arange(K.shape[1], device=age.device)]  # [..., n_cav, 10, 5]
+        gain = K[age, torch.arange(K.shape[1], device=age.device)]  # [..., n_cav, n_state, 5 (+ 1 when late)]
         state = prior + (gain @ innovation.unsqueeze(-1)).squeeze(-1)
-        return self._write(next_tensordict, state, (age + 1).clamp_max(K.shape[0] - 1), z)
+        return self._write(next_tensordict, state, (age + 1).clamp_max(K.shape[0] - 1), z[..., :5])
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         return next_tensordict  # everything happens in _step / _reset
@@ -262,7 +312,7 @@ class MeasurementFilter(Transform):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         leaf = observation_spec[MEASURED[0]]
         leaves = {k[-1]: Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device) for k in MEASURED}
-        leaves["state"] = Unbounded(shape=(*leaf.shape, 10), dtype=leaf.dtype, device=leaf.device)
+        leaves["state"] = Unbounded(shape=(*leaf.shape, self.n_state), dtype=leaf.dtype, device=leaf.device)
         leaves["steps"] = Unbounded(shape=leaf.shape, dtype=torch.int64, device=leaf.device)
         observation_spec["sensor_filter"] = Composite(**leaves, shape=observation_spec.shape,
                                                       device=observation_spec.device)
@@ -270,4 +320,5 @@ class MeasurementFilter(Transform):
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(gap_std={self.gap_std}, speed_std={self.speed_std}, tau={self.tau}, "
-                f"accel_std={self.accel_std})")
+                f"accel_std={self.accel_std}" + (f", leader_accel_delay={self.delay}, leader_jerk_std="
+                                                  f"{self.leader_jerk_std}" if self.delay else "") + ")")

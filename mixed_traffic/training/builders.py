@@ -416,16 +416,26 @@ def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     """The evaluation's Kalman filter of the noisy measurements (``eval.sensor_filter``) as a
     :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_filter_gap`` / ``_speed`` / ``_tau`` where
     set, ``eval.sensor_noise_*`` where null, or None when it is off or there is no noise to filter."""
+    from mixed_traffic.validation import v2v_delay_steps
+
     e = cfg.get("eval")
     if e is None or not bool(e.get("sensor_filter", False)) or _eval_noise(cfg) == (0.0, 0.0):
         return None
     delay, loss = float(e.get("v2v_delay", 0.0)), float(e.get("v2v_loss", 0.0))
     # how far the leader's acceleration may be from the one received: the filter's default for the perfect
-    # link, more for a lossy one (a lost message holds the last); a late or dead link is not read at all, and the
-    # leader may then brake or speed up as hard as any car (the leader's speed is then followed about as
-    # closely as measured: a filter that waits for the speeds to confirm a brake is late behind a hard one)
-    link = {} if delay == 0.0 and loss == 0.0 else {"leader_accel_std": 0.5} if delay == 0.0 and loss < 1.0 \
-        else {"leader_accel_key": None, "leader_accel_std": 10.0}
+    # link, more for a lossy one (a lost message holds the last). A late link's message is a measurement of the
+    # leader's acceleration that long ago (the filter's delayed-link model: the speeds tell what the leader did
+    # since). A dead link, or one both late and lossy (a held message's age is unknown), is not read at all, and
+    # the leader may then brake or speed up as hard as any car (the leader's speed is then followed about as
+    # closely as measured)
+    if delay == 0.0 and loss == 0.0:
+        link = {}
+    elif delay == 0.0 and loss < 1.0:
+        link = {"leader_accel_std": 0.5}
+    elif loss == 0.0:
+        link = {"leader_accel_delay": v2v_delay_steps(delay, float(base.scenario.dt))}
+    else:
+        link = {"leader_accel_key": None, "leader_accel_std": 10.0}
     model = sensor_filter_model(e)
     return measurement_filter_for(base.scenario, model["gap"], model["speed"], model["tau"], **link)
 
