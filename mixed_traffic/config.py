@@ -126,8 +126,10 @@ class SensorNoiseConfig:
     Errors of standard deviation ``gap`` (m) on every gap and ``speed`` (m/s) on every speed the CAV measures,
     correlated over ``tau`` s (0: white). Training only, like ``v2v_channel``: the evaluation's noise is
     ``eval.sensor_noise_*`` (none by default) and its filter ``eval.sensor_filter``. The draws are seeded by
-    ``seed`` plus the env's own seed, so every worker draws its own and a run repeats under its seed. Place it
-    after ``v2v_channel`` in the chain for the filter to read the degraded link.
+    ``seed`` plus the env's own seed, so every worker draws its own and a run repeats under its seed. With
+    ``filter`` and a ``v2v_channel`` in the chain, the channel must come first (checked at start-up), and the
+    filter reads the link as the evaluation's filter reads ``eval.v2v_*``'s: a late link as a late measurement,
+    a lossy one with less trust, a dead or late and lossy one not at all.
     """
 
     gap: float = 0.0  # m

@@ -316,6 +316,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     apg = OmegaConf.select(cfg, "policy.apg", default=None)
     if apg is not None and is_real(apg.get("iterations")) and apg.get("average_last") is not None:
         Int(0, apg.iterations)("policy.apg.average_last", apg.average_last)  # at most the steps it averages over
+    chain = list(OmegaConf.select(cfg, "transforms.chain", default=None) or [])
+    if ("sensor_noise" in chain and "v2v_channel" in chain and chain.index("v2v_channel") > chain.index("sensor_noise")
+            and bool(OmegaConf.select(cfg, "transforms.sensor_noise.filter", default=False))):
+        raise ConfigError("transforms.chain", f"{chain}: sensor_noise (with transforms.sensor_noise.filter) before "
+                          "v2v_channel", "v2v_channel before sensor_noise, so that the filter reads the link as received")
     for name in ("eval.v2v_delay", "transforms.v2v_channel.delay"):
         delay = OmegaConf.select(cfg, name, default=0.0)
         if is_real(delay) and delay > 0:

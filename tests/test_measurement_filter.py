@@ -246,6 +246,26 @@ def test_training_under_noise_puts_it_in_the_trained_chain_only():
     assert isinstance(plain, SensorNoise) and (plain.gap_std, plain.speed_std, plain.tau) == (0.3, 0.1, 1.0)
 
 
+def test_a_trained_filter_reads_the_trained_link_and_must_stand_after_it():
+    from torchrl.envs import Compose as ComposeT
+
+    from mixed_traffic.validation import ConfigError, validate_config
+
+    link = ["transforms.v2v_channel.delay=1.0", "transforms.sensor_noise.filter=true"]
+    chain = "transforms.chain=[v2v_channel,sensor_noise,non_negative_reward,safety_layer,residual_idm,intervention_cost,jerk_penalty]"
+    cfg = validate_config(compose([*TRAIN_NOISE, *link, chain]))
+    trained = make_transformed_env(cfg, num_envs=2, seed=3)
+    assert isinstance(trained.transform[0], V2VChannel) and isinstance(trained.transform[1], ComposeT)
+    assert trained.transform[1][1].delay == 10 and trained.transform[1][1].leader_accel_key == ("cav", "leader_accel")
+    lossy = validate_config(compose([*TRAIN_NOISE, *link, chain, "transforms.v2v_channel.loss=0.2"]))
+    assert make_transformed_env(lossy, num_envs=2, seed=3).transform[1][1].leader_accel_key is None
+    after = chain.replace("v2v_channel,sensor_noise", "sensor_noise,v2v_channel")
+    with pytest.raises(ConfigError, match=r"transforms.chain: .*sensor_noise \(with transforms.sensor_noise.filter\) "
+                                          r"before v2v_channel; allowed: v2v_channel before sensor_noise"):
+        validate_config(compose([*TRAIN_NOISE, *link, after]))
+    validate_config(compose([*TRAIN_NOISE, link[0], after]))  # no filter: the order is the user's
+
+
 def test_training_noise_settings_are_checked_at_start_up():
     from mixed_traffic.validation import ConfigError, validate_config
 

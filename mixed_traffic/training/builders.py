@@ -142,6 +142,26 @@ def measurement_filter_for(sc, gap: float, speed: float, tau: float, **kwargs):
                              leader_is_head=tuple(i == 1 for i in sc.cav_indices), **kwargs)
 
 
+def filter_link(delay: float, loss: float, dt: float, name: str = "eval.v2v_delay") -> dict:
+    """The :class:`transforms.MeasurementFilter` settings for a V2V link ``delay`` s late (the config field
+    ``name``) that loses the share ``loss`` of its messages.
+
+    The filter's default for the perfect link, less trust for a lossy one (a lost message holds the last). A
+    late link's message is a measurement of the leader's acceleration that long ago (the filter's delayed-link
+    model: the speeds tell what the leader did since). A dead link, or one both late and lossy (a held
+    message's age is unknown), is not read at all, and the leader may then brake or speed up as hard as any car
+    (the leader's speed is then followed about as closely as measured)."""
+    from mixed_traffic.validation import v2v_delay_steps
+
+    if delay == 0.0 and loss == 0.0:
+        return {}
+    if delay == 0.0 and loss < 1.0:
+        return {"leader_accel_std": 0.5}
+    if loss == 0.0:
+        return {"leader_accel_delay": v2v_delay_steps(delay, dt, name)}
+    return {"leader_accel_key": None, "leader_accel_std": 10.0}
+
+
 def sensor_filter_model(e) -> dict:
     """The noise the evaluation's filter assumes: ``{gap, speed, tau}`` from ``e.sensor_filter_*`` where set,
     from ``e.sensor_noise_*`` (the noise drawn) where null (``e``: the ``eval`` node)."""
@@ -168,7 +188,11 @@ def _sensor_noise(tcfg, env):
                             observation=sc.observation, s_max=float(sc.s_max))
         if not c.filter:
             return noise
-        return Compose(noise, measurement_filter_for(sc, float(c.gap), float(c.speed), float(c.tau)))
+        link = {}
+        if "v2v_channel" in tcfg.chain:  # before this entry (checked at start-up): the filter reads the link as received
+            v = tcfg.v2v_channel
+            link = filter_link(float(v.delay), float(v.loss), float(sc.dt), "transforms.v2v_channel.delay")
+        return Compose(noise, measurement_filter_for(sc, float(c.gap), float(c.speed), float(c.tau), **link))
     except ValueError as err:
         raise ValueError(f"transforms.sensor_noise: {err}") from None
 
@@ -416,26 +440,11 @@ def eval_measurement_filter(cfg: DictConfig, base: EnvBase):
     """The evaluation's Kalman filter of the noisy measurements (``eval.sensor_filter``) as a
     :class:`transforms.MeasurementFilter` whose model is ``eval.sensor_filter_gap`` / ``_speed`` / ``_tau`` where
     set, ``eval.sensor_noise_*`` where null, or None when it is off or there is no noise to filter."""
-    from mixed_traffic.validation import v2v_delay_steps
-
     e = cfg.get("eval")
     if e is None or not bool(e.get("sensor_filter", False)) or _eval_noise(cfg) == (0.0, 0.0):
         return None
     delay, loss = float(e.get("v2v_delay", 0.0)), float(e.get("v2v_loss", 0.0))
-    # how far the leader's acceleration may be from the one received: the filter's default for the perfect
-    # link, more for a lossy one (a lost message holds the last). A late link's message is a measurement of the
-    # leader's acceleration that long ago (the filter's delayed-link model: the speeds tell what the leader did
-    # since). A dead link, or one both late and lossy (a held message's age is unknown), is not read at all, and
-    # the leader may then brake or speed up as hard as any car (the leader's speed is then followed about as
-    # closely as measured)
-    if delay == 0.0 and loss == 0.0:
-        link = {}
-    elif delay == 0.0 and loss < 1.0:
-        link = {"leader_accel_std": 0.5}
-    elif loss == 0.0:
-        link = {"leader_accel_delay": v2v_delay_steps(delay, float(base.scenario.dt))}
-    else:
-        link = {"leader_accel_key": None, "leader_accel_std": 10.0}
+    link = filter_link(delay, loss, float(base.scenario.dt))
     model = sensor_filter_model(e)
     return measurement_filter_for(base.scenario, model["gap"], model["speed"], model["tau"], **link)
 
