@@ -43,6 +43,16 @@ began and run only on its result:
 - ``brake_22_to_8``: ``emergency_brake`` from 22 m/s down to 8 m/s;
 - ``stop_and_go_25``: as ``stop_and_go`` between 25 m/s and standstill.
 
+Five more (``--cases fresh_3``), stops and drive-offs unlike the cases above, fixed before the search of the
+drive-off rule (``transforms.residual.drive_off``) began and run only on its result:
+
+- ``stop_and_go_12_slow``: 12 m/s and standstill, the head driving off and braking at 1 m/s^2, holding 15 s,
+  standing 4 s;
+- ``stop_and_go_18_long_stop``: 18 m/s and standstill at 2.5 m/s^2, holding 8 s, standing 12 s;
+- ``brake_from_20``: ``emergency_brake`` from 20 m/s down to 0 m/s;
+- ``stop_and_go_10_ring_250``: as ``stop_and_go`` at 10 m/s on a 250 m ring;
+- ``stop_and_go_15_humans_30pct``: ``stop_and_go_15`` with the humans' parameters spread +-30 %.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -119,6 +129,16 @@ def cases(seconds: float) -> dict[str, dict]:
                                                                          "period": 8.0}},
         "brake_22_to_8": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 22.0, "v_low": 8.0}},
         "stop_and_go_25": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=25.0)},
+        # fresh_3: stops and drive-offs unlike the others', fixed before the drive-off rule's search began
+        "stop_and_go_12_slow": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=12.0, rate=1.0, hold=15.0,
+                                                                                  stop=4.0)},
+        "stop_and_go_18_long_stop": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=18.0, rate=2.5, hold=8.0,
+                                                                                       stop=12.0)},
+        "brake_from_20": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 20.0, "v_low": 0.0}},
+        "stop_and_go_10_ring_250": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=10.0),
+                                    "env": {"ring_length": 250.0}},
+        "stop_and_go_15_humans_30pct": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=15.0),
+                                        "eval": {"hdv_param_noise": 0.3}},
     }
 
 
@@ -127,8 +147,10 @@ def cases(seconds: float) -> dict[str, dict]:
 FRESH = ("eudc_highway", "fast_ramps", "perturbation_24", "sine_wide", "brake_from_28", "stop_and_go_20")
 TUNING = ("sine_cross", "steps_cross", "ramps_cross")
 FRESH_2 = ("sine_slow_wide", "ramps_wide", "steps_16_24", "perturbation_18", "brake_22_to_8", "stop_and_go_25")
-GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2), "fresh": FRESH,
-          "fresh_2": FRESH_2, "tuning": TUNING}
+FRESH_3 = ("stop_and_go_12_slow", "stop_and_go_18_long_stop", "brake_from_20", "stop_and_go_10_ring_250",
+           "stop_and_go_15_humans_30pct")
+GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3), "fresh": FRESH,
+          "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3}
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:

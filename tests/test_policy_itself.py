@@ -718,11 +718,11 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert mod.case_names(["fresh"], all_cases) == list(mod.GROUPS["fresh"])
     assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
-    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning'\]"):
+    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
-    assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6
+    assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6 and len(mod.GROUPS["fresh_3"]) == 5
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
 
