@@ -209,6 +209,25 @@ class CatchUpConfig:
 
 
 @dataclass
+class DriveOffConfig:
+    """``transforms.residual.drive_off``: after a standstill the executed command (base plus residual) is capped at
+    ``gain * (v_leader + overspeed - v)`` until the CAV has matched its leader for ``release`` s
+    (:class:`transforms.DriveOffCap`, placed between the safety layer and the residual): it eases onto its leader's
+    speed from below instead of closing the gap by passing it. The cap lifts as the gap projected at ``accel``
+    rises through ``gaps`` (m), so the gap stays in the band. ``when``: ``deploy`` (only where the policy is
+    evaluated or deployed, as ``catch_up.when``) or ``always``. ``gain`` null (the default): off.
+    """
+
+    gain: float | None = None  # 1/s; null: off
+    overspeed: float = 0.15  # m/s
+    gaps: Any = field(default_factory=lambda: [34.0, 38.0])  # [from, full] (m)
+    accel: float = 1.5  # m/s^2
+    release: float = 5.0  # s
+    standstill: float = 0.5  # m/s
+    when: str = "deploy"  # "always" or "deploy"
+
+
+@dataclass
 class ResidualConfig:
     """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual).
 
@@ -230,6 +249,8 @@ class ResidualConfig:
     the base); null: no envelope.
     ``catch_up`` (:class:`CatchUpConfig`): the base (inside the envelope) lifted toward an acceleration while
     its leader pulls away from a large gap; off by default.
+    ``drive_off`` (:class:`DriveOffConfig`): after a standstill, the command capped so that the CAV eases onto
+    its leader's speed from below; off by default.
     ``envelope_fade`` (``off``, ``always`` or ``deploy``; not ``off`` needs ``stop_gap``): a residual that
     accelerates fades out as the base nears its envelope (``ResidualAction(room_key=...)``), so base +
     residual never exceeds it; a braking residual is left as it is. ``always``: in training too;
@@ -252,6 +273,7 @@ class ResidualConfig:
     beyond_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
+    drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     # the envelope's measurement margins (m, m/s), as the safety layer's (eval.sensor_noise_margin sets them)
     gap_margin: float = 0.0

@@ -140,6 +140,12 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.residual.catch_up.horizon": Real(0),
     "transforms.residual.catch_up.when": OneOf(("always", "deploy")),
+    "transforms.residual.drive_off.gain": Real(0, 20, lo_open=True, optional=True),
+    "transforms.residual.drive_off.overspeed": Real(0, 5),
+    "transforms.residual.drive_off.accel": Real(0, 10, lo_open=True),
+    "transforms.residual.drive_off.release": Real(0, 600, lo_open=True),
+    "transforms.residual.drive_off.standstill": Real(0, 5, lo_open=True),
+    "transforms.residual.drive_off.when": OneOf(("always", "deploy")),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -297,6 +303,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and fade_mode == "off"):
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
+    gaps = OmegaConf.select(cfg, "transforms.residual.drive_off.gaps", default=None)
+    if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
+                                 and 0 <= gaps[0] < gaps[1]):
+        raise ConfigError("transforms.residual.drive_off.gaps", repr(gaps),
+                          "[from, full] with 0 <= from < full (m)")
     gaps = OmegaConf.select(cfg, "transforms.residual.catch_up.gaps", default=None)
     if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
                                  and 0 <= gaps[0] < gaps[1]):

@@ -380,12 +380,10 @@ def test_wide_band_experiment_is_the_lift_experiment_with_a_law_beyond_the_train
 
 
 def test_v2v_experiment_is_the_wide_band_with_a_brake_floor_and_a_longer_apg_average_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_v2v`` (the default) is the wide band's config with the IDM slot's braking
+    """``experiment=ring_lagrangian_ppo_v2v`` (the default's training) is the wide band's config with the IDM slot's braking
     floored by the leader's (read over V2V) and the pre-training's weights averaged over 90 of its 100 steps."""
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
     from mixed_traffic.validation import ConfigError, validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_v2v"
     v2v, wide = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_v2v", "ring_lagrangian_ppo_wide_band"))
     validate_config(v2v)
     assert v2v.transforms.residual.high_speed.brake_floor == 1.0 and v2v.transforms.residual.high_speed.brake_margin == 0.3
@@ -396,3 +394,18 @@ def test_v2v_experiment_is_the_wide_band_with_a_brake_floor_and_a_longer_apg_ave
         v2v.transforms.residual.high_speed.brake_floor = wide.transforms.residual.high_speed.brake_floor
         v2v.policy.apg.average_last, v2v.name = wide.policy.apg.average_last, wide.name
     assert OmegaConf.to_container(v2v) == OmegaConf.to_container(wide)
+
+
+def test_the_default_is_v2v_with_a_drive_off_cap_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_drive_off`` (the default) trains as ``ring_lagrangian_ppo_v2v`` and adds the
+    drive-off cap where the policy is evaluated or deployed."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+    from mixed_traffic.validation import validate_config
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_drive_off"
+    d, v2v = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_drive_off", "ring_lagrangian_ppo_v2v"))
+    validate_config(d)
+    assert d.transforms.residual.drive_off.gain == 1.0 and d.transforms.residual.drive_off.when == "deploy"
+    with open_dict(d):
+        d.transforms.residual.drive_off, d.name = v2v.transforms.residual.drive_off, v2v.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(v2v)

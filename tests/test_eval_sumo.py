@@ -60,14 +60,15 @@ def test_sumo_evaluates_the_deployed_chain_as_torch_does():
     gaps of the same episode agree across the backends (the residual at zero: the classical base drives)."""
     from mixed_traffic.evaluation.harness import eval_env_overrides
     from mixed_traffic.evaluation.sumo import make_sumo_eval_env
-    from transforms import JerkPenalty, ResidualAction
+    from transforms import DriveOffCap, JerkPenalty, ResidualAction
 
-    cfg = compose(["experiment=ring_lagrangian_ppo_v2v", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    cfg = compose(["experiment=ring_lagrangian_ppo_drive_off", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
     assert "jerk_penalty" in cfg.transforms.chain and cfg.transforms.residual.envelope_fade == "deploy"
     env = make_sumo_eval_env(cfg, [7], in_process=True, **eval_env_overrides(cfg, "random_steps"))
     try:
         assert not any(isinstance(t, JerkPenalty) for t in env.transform)
         assert next(t for t in env.transform if isinstance(t, ResidualAction)).room_key is not None  # deployed
+        assert any(isinstance(t, DriveOffCap) for t in env.transform)  # ... with the drive-off cap
     finally:
         env.close()
     zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])

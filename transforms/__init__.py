@@ -9,6 +9,7 @@ from transforms.conflict_cost import ConflictCost
 from transforms.counterfactual_reward import CounterfactualReward
 from transforms.deeplcc_history import DeePLCCHistory
 from transforms.discretizer import StateDiscretizer
+from transforms.drive_off import DriveOffCap
 from transforms.intervention_cost import InterventionCost
 from transforms.jerk_limit import JerkLimit
 from transforms.jerk_penalty import JerkPenalty
@@ -42,4 +43,5 @@ __all__ = [
     "V2VChannel",
     "SensorNoise",
     "MeasurementFilter",
+    "DriveOffCap",
 ]

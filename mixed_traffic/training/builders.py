@@ -198,7 +198,7 @@ def _sensor_noise(tcfg, env):
 
 
 def _residual_idm(tcfg, env, *, deploy: bool = False):
-    from transforms import ResidualAction
+    from transforms import DriveOffCap, ResidualAction
 
     r = tcfg.residual
     try:
@@ -209,9 +209,16 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key,
                              deploy=deploy)
         fade = r.get("fade_speeds")
-        return ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
-                              fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
-                              slack_key=slack_key, fade_slack=fade_slack)
+        residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
+                                  fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
+                                  slack_key=slack_key, fade_slack=fade_slack)
+        d = r.get("drive_off")
+        if d is None or d.get("gain") is None or not (deploy or d.get("when", "deploy") == "always"):
+            return residual
+        # the cap stands before the residual in the chain: the action passes the residual first, then the cap
+        cap = DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
+                          standstill=d.standstill, dt=float(env.scenario.dt))
+        return [cap, residual]
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
@@ -309,7 +316,8 @@ class EpisodeRewardSum(RewardSum):
         return spec
 
 
-# name -> factory(transforms_cfg, base_env) -> Transform.  Order comes from the config's `chain`.
+# name -> factory(transforms_cfg, base_env) -> Transform, or a list of them in chain order (residual_idm with
+# its drive-off cap).  Order comes from the config's `chain`.
 TRANSFORMS: dict[str, Callable] = {
     "non_negative_reward": _non_negative_reward,
     "profile_reward": _profile_reward,
@@ -368,8 +376,10 @@ def chain_transforms(cfg: DictConfig, base: EnvBase, *, without: tuple[str, ...]
         if deploy else (None, None, None)
     tcfg = noise_margined(cfg, measured[2]) if deploy else cfg.transforms
     ts = [m for m in measured if m is not None]
-    ts += [TRANSFORMS[name](tcfg, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
-           for name in cfg.transforms.chain if name not in without]
+    for name in cfg.transforms.chain:
+        if name not in without:
+            built = TRANSFORMS[name](tcfg, base, **({"deploy": deploy} if name in DEPLOY_AWARE else {}))
+            ts += built if isinstance(built, list) else [built]  # a factory may give several, in chain order
     ts += [EpisodeRewardSum(in_keys=["reward"], out_keys=["episode_reward"]), StepCounter()]
     return Compose(*ts)
 

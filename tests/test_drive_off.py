@@ -1,0 +1,122 @@
+"""The drive-off cap (transforms.DriveOffCap and transforms.residual.drive_off)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from mixed_traffic import make_env
+from mixed_traffic.config import compose
+from mixed_traffic.controllers.classic import make_classic_policy
+from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.validation import ConfigError, validate_config
+from transforms import DriveOffCap, ResidualAction
+
+# the head cruises at 15 m/s, stops for 6 s, drives off at 2 m/s^2 and holds 15 m/s for a long time
+STOP = dict(profile="piecewise", profile_kwargs={"times": [0, 10, 17.5, 23.5, 31, 400], "speeds": [15, 15, 0, 0, 15, 15]})
+
+
+def _idm_rollout(steps: int, *, cap: DriveOffCap | None, batch: int = 1, **env_kw):
+    """IDM drives the CAV (a residual of weight 0 over it), with or without the cap after it."""
+    base = make_env("ring", batch_size=batch, seed=0, **env_kw)
+    ts = ([cap] if cap is not None else []) + [ResidualAction(make_classic_policy("idm", base), weight=0.0)]
+    env = TransformedEnv(base, Compose(*ts))
+    with torch.no_grad():
+        return env, env.rollout(steps, lambda td: td.set("action", torch.zeros(batch, 1)), break_when_any_done=False)
+
+
+def test_specs_hold():
+    base = make_env("ring", batch_size=2, seed=0, **STOP)
+    check_env_specs(TransformedEnv(base, Compose(DriveOffCap(dt=base.scenario.dt),
+                                                 ResidualAction(make_classic_policy("idm", base), weight=0.5))))
+
+
+def test_after_a_standstill_the_cav_eases_onto_its_leaders_speed_from_below():
+    """IDM alone passes the head's speed by more than 0.5 m/s to close the gap the drive-off opened; under the cap
+    it stays within the overspeed until the cap releases."""
+    _, free = _idm_rollout(900, cap=None, **STOP)
+    _, capped = _idm_rollout(900, cap=DriveOffCap(overspeed=0.15), **STOP)
+    def over(td):
+        return td["next", "cav", "speed"][0, 310:, 0] - td["next", "cav", "leader_speed"][0, 310:, 0]  # from 31 s
+    assert float(over(free).max()) > 0.5
+    engaged = capped["next", "drive_off", "engaged"][0, 310:, 0]
+    assert bool(engaged[:100].all())
+    assert float(over(capped)[engaged].max()) <= 0.15 + 1e-4
+    before = capped["next", "drive_off", "engaged"][0, :150, 0]  # the first 15 s: no standstill yet
+    assert not bool(before.any())
+
+
+def test_it_releases_once_matched_and_then_leaves_the_command_alone():
+    _, td = _idm_rollout(4000, cap=DriveOffCap(overspeed=0.15, release=5.0), **STOP)
+    engaged = td["next", "drive_off", "engaged"][0, :, 0]
+    last = int(engaged.nonzero().max())  # released after this step
+    assert 400 < last < 3900 and not bool(engaged[last + 1:].any())
+    executed, base = td["next", "cav", "accel"][0, last + 2:], td["residual", "base_action"][0, last + 2:]
+    torch.testing.assert_close(executed, base, atol=1e-3, rtol=0)  # the base drives again, uncapped
+    while_engaged = td["next", "cav", "accel"][0, 320:last] - td["residual", "base_action"][0, 320:last]
+    assert float(while_engaged.min()) < -0.1  # ... where before the cap held it back
+
+
+def test_no_standstill_no_change():
+    kw = dict(profile="random_steps", profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
+    _, free = _idm_rollout(1500, cap=None, batch=4, **kw)
+    _, capped = _idm_rollout(1500, cap=DriveOffCap(), batch=4, **kw)
+    assert not bool(capped["next", "drive_off", "engaged"].any())
+    torch.testing.assert_close(free["next", "cav", "speed"], capped["next", "cav", "speed"], atol=0, rtol=0)
+
+
+def test_the_cap_lifts_as_the_projected_gap_nears_the_bands_edge():
+    cap = DriveOffCap(gain=1.0, overspeed=0.1, gaps=(34.0, 38.0), accel=2.0)
+    gap = torch.tensor([20.0, 34.0, 36.0, 38.0, 30.0, 32.0])
+    v = torch.tensor([10.0, 10.0, 10.0, 10.0, 10.0, 6.0])
+    v_l = torch.tensor([10.0, 10.0, 10.0, 10.0, 10.0, 10.0])
+    c, lift = cap.cap(gap, v, v_l)
+    torch.testing.assert_close(c, torch.tensor([0.1, 0.1, 0.1, 0.1, 0.1, 4.1]))
+    torch.testing.assert_close(lift, torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.5]))  # last: 32 + 4^2 / (2 * 2) = 36
+
+
+def test_a_partial_reset_keeps_the_other_rows_state():
+    cap = DriveOffCap()
+    state = TensorDict({("drive_off", "engaged"): torch.tensor([[True], [True]]),
+                        ("drive_off", "calm"): torch.tensor([[1.5], [2.0]]),
+                        "_reset": torch.tensor([[True], [False]])}, batch_size=[2])
+    out = cap._reset(state, TensorDict({("cav", "speed"): torch.tensor([[3.0], [3.0]])}, batch_size=[2]))
+    assert out["drive_off", "engaged"].flatten().tolist() == [False, True]
+    assert out["drive_off", "calm"].flatten().tolist() == [0.0, 2.0]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"gain": 0.0}, r"DriveOffCap: gain=0.0 is invalid; allowed: > 0"),
+    ({"overspeed": -0.1}, r"DriveOffCap: overspeed=-0.1 is invalid; allowed: >= 0"),
+    ({"gaps": (38.0, 34.0)}, r"DriveOffCap: gaps=\(38.0, 34.0\) is invalid; allowed: \(from, full\)"),
+    ({"release": float("nan")}, r"DriveOffCap: release=nan is invalid"),
+])
+def test_bad_settings_name_the_argument(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        DriveOffCap(**kwargs)
+
+
+def test_the_config_puts_it_before_the_residual_at_deployment_only():
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off"]))
+    deployed = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=True).transform]
+    assert deployed[deployed.index("SafetyLayer"):deployed.index("ResidualAction") + 1] == \
+        ["SafetyLayer", "DriveOffCap", "ResidualAction"]
+    trained = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=1, seed=0).transform]
+    assert "DriveOffCap" not in trained
+    always = validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off", "transforms.residual.drive_off.when=always"]))
+    assert "DriveOffCap" in [type(t).__name__ for t in make_transformed_env(always, num_envs=1, seed=0).transform]
+    off = validate_config(compose(["experiment=ring_lagrangian_ppo_v2v"]))
+    assert "DriveOffCap" not in [type(t).__name__ for t in make_transformed_env(off, num_envs=1, seed=0, deploy=True).transform]
+
+
+@pytest.mark.parametrize("override, match", [
+    ("transforms.residual.drive_off.gain=-1.0", r"transforms.residual.drive_off.gain: -1.0 is out of range"),
+    ("transforms.residual.drive_off.gaps=[38.0,34.0]", r"transforms.residual.drive_off.gaps: \[38.0, 34.0\]"),
+    ("transforms.residual.drive_off.when=never", r"transforms.residual.drive_off.when"),
+])
+def test_bad_config_fails_at_start_up_naming_the_field(override, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off", override]))

@@ -1,0 +1,148 @@
+"""DriveOffCap: after a standstill, the CAV eases onto its leader's speed from below.
+
+Behind a leader that stops and drives off, a car-following law lags the drive-off, the gap opens, and the law
+then closes it by driving faster than the leader: during the leader's next steady stretch the CAV is still
+above its speed (the steady speed error of a stop-and-go head). This transform caps the executed command after
+a standstill at ``gain * (v_leader + overspeed - v)``, so the CAV approaches the leader's speed from below and
+then closes the gap at no more than ``overspeed`` above it. The cap lifts as the gap, projected to where a CAV
+that closes its speed deficit at ``accel`` would have it, rises from ``gaps[0]`` to ``gaps[1]``: the gap
+stays in the band. It engages when the car's speed falls below ``standstill`` and releases once the car has
+matched its leader's speed (within ``match``) and the command has stayed under the cap for ``release`` s: then
+the law drives as before. A command below the cap passes untouched; braking is never capped.
+
+It stands between the safety layer and the residual in the chain (``transforms.residual.drive_off``), so it
+caps the sum of the base and the learned residual, and the safety layer still has the last word. Its state
+travels in the tensordict (``("drive_off", "engaged")``, ``("drive_off", "calm")``), so a row reset on its own
+starts afresh and a collector's rollouts carry it. TorchRL has no transform that caps an action by a rule with
+memory, hence this one.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+GAP, SPEED, LEADER_SPEED = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")
+ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
+
+
+class DriveOffCap(Transform):
+    """Cap the executed acceleration at ``gain * (v_leader + overspeed - v)`` from a standstill until released.
+
+    Args:
+        gain: how fast the CAV closes on its leader's speed from below (1/s, > 0).
+        overspeed: how far above its leader's speed the CAV may drive while the cap holds (m/s, >= 0).
+        gaps: ``(from, full)`` (m, ``0 <= from < full``): the cap lifts linearly as the projected gap
+            ``gap + max(v_leader - v, 0)^2 / (2 accel)`` rises from ``from`` to ``full``.
+        accel: the acceleration (m/s^2, > 0) at which the projection closes the speed deficit.
+        release: how long (s, > 0) the car must have matched its leader with the command under the cap before
+            the cap releases.
+        standstill: the speed (m/s, > 0) below which the cap engages.
+        match: how close below its leader's speed (m/s, > 0) counts as matched.
+        dt: the env's step (s, > 0).
+        action_key: the executed acceleration (default ``"action"``).
+
+    Example:
+        >>> import torch
+        >>> from torchrl.envs import Compose, TransformedEnv
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.controllers.classic import make_classic_policy
+        >>> from transforms import DriveOffCap, ResidualAction
+        >>> stops = dict(profile="piecewise", profile_kwargs={"times": [0, 10, 17.5, 23.5, 31, 60],
+        ...                                                    "speeds": [15, 15, 0, 0, 15, 15]})
+        >>> base = make_env("ring", batch_size=1, seed=0, **stops)
+        >>> env = TransformedEnv(base, Compose(DriveOffCap(dt=base.scenario.dt),
+        ...                                    ResidualAction(make_classic_policy("idm", base), weight=0.0)))
+        >>> td = env.rollout(600, lambda td: td.set("action", torch.zeros(1, 1)))
+        >>> after = td["next", "cav", "speed"][0, 400:] - td["next", "cav", "leader_speed"][0, 400:]
+        >>> bool(after.max() < 0.16)  # after the drive-off the CAV does not pass its leader's speed + overspeed
+        True
+    """
+
+    def __init__(self, gain: float = 1.0, overspeed: float = 0.15, gaps: tuple[float, float] = (34.0, 38.0),
+                 accel: float = 1.5, release: float = 5.0, standstill: float = 0.5, match: float = 0.3, *,
+                 dt: float = 0.1, action_key: NestedKey = "action"):
+        for name, value in (("gain", gain), ("accel", accel), ("release", release), ("standstill", standstill),
+                            ("match", match), ("dt", dt)):
+            if not float(value) > 0.0:
+                raise ValueError(f"DriveOffCap: {name}={value!r} is invalid; allowed: > 0")
+        if not float(overspeed) >= 0.0:
+            raise ValueError(f"DriveOffCap: overspeed={overspeed!r} is invalid; allowed: >= 0 (m/s)")
+        if not (len(gaps) == 2 and 0.0 <= float(gaps[0]) < float(gaps[1])):
+            raise ValueError(f"DriveOffCap: gaps={gaps!r} is invalid; allowed: (from, full) with 0 <= from < full (m)")
+        super().__init__(in_keys=[], out_keys=[], in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.gain, self.overspeed, self.accel = float(gain), float(overspeed), float(accel)
+        self.gaps = (float(gaps[0]), float(gaps[1]))
+        self.release, self.standstill, self.match, self.dt = float(release), float(standstill), float(match), float(dt)
+        self.action_key = action_key
+
+    def cap(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """The cap (m/s^2) where it holds in full, and how far it is lifted (0: not at all, 1: gone)."""
+        cap = self.gain * (leader_speed + self.overspeed - speed)
+        deficit = (leader_speed - speed).clamp_min(0.0)
+        projected = gap + deficit * deficit / (2.0 * self.accel)
+        lift = ((projected - self.gaps[0]) / (self.gaps[1] - self.gaps[0])).clamp(0.0, 1.0)
+        return cap, lift
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a = tensordict.get(self.action_key, None)
+        if a is None:
+            if self.missing_tolerance:
+                return tensordict
+            raise KeyError(f"DriveOffCap: {self.action_key!r} not found in the input tensordict")
+        engaged, calm = tensordict.get(ENGAGED, None), tensordict.get(CALM, None)
+        if engaged is None or calm is None:
+            raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "
+                               "TransformedEnv before stepping it")
+        gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
+        engaged = engaged.reshape(a.shape) | (v < self.standstill)
+        cap, lift = self.cap(gap, v, v_l)
+        capped = torch.minimum(a, cap)
+        executed = torch.where(engaged, capped + lift * (a - capped), a)
+        calm = torch.where(engaged & (v >= v_l - self.match) & (a <= cap), calm.reshape(a.shape) + self.dt,
+                           torch.zeros_like(a))
+        released = calm >= self.release - 1e-9
+        tensordict.set(self.action_key, executed)
+        tensordict.set(ENGAGED, (engaged & ~released).reshape(tensordict.get(ENGAGED).shape))
+        tensordict.set(CALM, torch.where(released, torch.zeros_like(calm), calm).reshape(tensordict.get(CALM).shape))
+        return tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        for key in (ENGAGED, CALM):
+            next_tensordict.set(key, tensordict.get(key))
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        v = tensordict_reset.get(SPEED)
+        engaged, calm = torch.zeros_like(v, dtype=torch.bool), torch.zeros_like(v)
+        mask = tensordict.get("_reset", None) if tensordict is not None else None
+        old_engaged = tensordict.get(ENGAGED, None) if tensordict is not None else None
+        if mask is not None and old_engaged is not None:  # rows not reset keep their state
+            keep = ~mask.reshape(*mask.shape[:len(tensordict.batch_size)], *([1] * (v.dim() - len(tensordict.batch_size))))
+            keep = keep.expand_as(v)
+            engaged = torch.where(keep, old_engaged, engaged)
+            calm = torch.where(keep, tensordict.get(CALM), calm)
+        tensordict_reset.set(ENGAGED, engaged)
+        tensordict_reset.set(CALM, calm)
+        return tensordict_reset
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return next_tensordict  # everything happens in _inv_call / _step / _reset
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError("DriveOffCap caps a live env's action; use it inside an env")
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        leaf = observation_spec[SPEED]
+        observation_spec["drive_off"] = Composite(
+            engaged=Unbounded(shape=leaf.shape, dtype=torch.bool, device=leaf.device),
+            calm=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
+            shape=observation_spec.shape, device=observation_spec.device)
+        return observation_spec
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(gain={self.gain}, overspeed={self.overspeed}, gaps={self.gaps}, "
+                f"accel={self.accel}, release={self.release}, standstill={self.standstill})")
