@@ -223,7 +223,7 @@ class DriveOffConfig:
     gaps: Any = field(default_factory=lambda: [34.0, 38.0])  # [from, full] (m)
     accel: float = 1.5  # m/s^2
     release: float = 5.0  # s
-    standstill: float = 0.5  # m/s
+    standstill: float = 0.5  # m/s: the car and its leader both below it engage the cap
     when: str = "deploy"  # "always" or "deploy"
 
 

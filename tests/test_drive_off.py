@@ -120,3 +120,20 @@ def test_the_config_puts_it_before_the_residual_at_deployment_only():
 def test_bad_config_fails_at_start_up_naming_the_field(override, match):
     with pytest.raises(ConfigError, match=match):
         validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off", override]))
+
+
+def test_it_engages_only_when_the_car_and_its_leader_have_both_stopped():
+    """A dip of the car's own (noisy) speed below the standstill speed behind a moving leader is no stop."""
+    cap = DriveOffCap(standstill=0.5)
+
+    def step(v, v_l, a=2.0):
+        td = TensorDict({"action": torch.tensor([[a]]), ("cav", "gap"): torch.tensor([[10.0]]),
+                         ("cav", "speed"): torch.tensor([[v]]), ("cav", "leader_speed"): torch.tensor([[v_l]]),
+                         ("drive_off", "engaged"): torch.tensor([[False]]), ("drive_off", "calm"): torch.tensor([[0.0]])},
+                        batch_size=[1])
+        out = cap._inv_call(td)
+        return bool(out["drive_off", "engaged"]), float(out["action"])
+
+    assert step(0.3, 2.0) == (False, 2.0)  # the leader still drives: untouched
+    engaged, executed = step(0.3, 0.2)
+    assert engaged and executed == pytest.approx(1.0 * (0.2 + 0.15 - 0.3))

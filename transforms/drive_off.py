@@ -6,7 +6,8 @@ above its speed (the steady speed error of a stop-and-go head). This transform c
 a standstill at ``gain * (v_leader + overspeed - v)``, so the CAV approaches the leader's speed from below and
 then closes the gap at no more than ``overspeed`` above it. The cap lifts as the gap, projected to where a CAV
 that closes its speed deficit at ``accel`` would have it, rises from ``gaps[0]`` to ``gaps[1]``: the gap
-stays in the band. It engages when the car's speed falls below ``standstill`` and releases once the car has
+stays in the band. It engages when the car and its leader are both below ``standstill`` (a car that reads
+noisy speeds does not take a dip of its own measurement for a stop) and releases once the car has
 matched its leader's speed (within ``match``) and the command has stayed under the cap for ``release`` s: then
 the law drives as before. A command below the cap passes untouched; braking is never capped.
 
@@ -40,7 +41,7 @@ class DriveOffCap(Transform):
         accel: the acceleration (m/s^2, > 0) at which the projection closes the speed deficit.
         release: how long (s, > 0) the car must have matched its leader with the command under the cap before
             the cap releases.
-        standstill: the speed (m/s, > 0) below which the cap engages.
+        standstill: the speed (m/s, > 0) below which the car and its leader engage the cap.
         match: how close below its leader's speed (m/s, > 0) counts as matched.
         dt: the env's step (s, > 0).
         action_key: the executed acceleration (default ``"action"``).
@@ -98,7 +99,7 @@ class DriveOffCap(Transform):
             raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "
                                "TransformedEnv before stepping it")
         gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
-        engaged = engaged.reshape(a.shape) | (v < self.standstill)
+        engaged = engaged.reshape(a.shape) | ((v < self.standstill) & (v_l < self.standstill))  # both stopped
         cap, lift = self.cap(gap, v, v_l)
         capped = torch.minimum(a, cap)
         executed = torch.where(engaged, capped + lift * (a - capped), a)
