@@ -21,6 +21,15 @@ experiment's base. That searches a classical opponent on the same tuning episode
     python benchmarks/ring_base_replay.py --experiment ring_lagrangian_ppo_wide_band --classic cacc \
         --vary ka=0:1 kv=0.1:1.2 ks=0.01:0.3 h=0.4:2 s0=2:10 --draws 200 --out outputs/results/cacc_replay
 
+A base whose ``transforms.residual.drive_off.gain`` is set is replayed under its drive-off cap (the deployed
+chain's, with its memory), so the cap's settings can be searched the same way::
+
+    python benchmarks/ring_base_replay.py --experiment ring_lagrangian_ppo_v2v \\
+        --cases stop_and_go_15 stop_and_go brake_to_standstill brake_from_25 \\
+        --grid transforms.residual.drive_off.gain=0.7,1.0,1.5 transforms.residual.drive_off.overspeed=0.05,0.1,0.15 \\
+        'transforms.residual.drive_off.gaps=[32.0,38.0],[34.0,38.0]' transforms.residual.drive_off.accel=1.0,2.0 \\
+        --out outputs/results/ring_base_replay_drive_off
+
 Prints the settings on the frontier of (worst jerk excess over the reference across the cases, largest
 head gap across the cases) that collide nowhere, and writes ``OUT/replay.jsonl`` (one line per setting) and
 ``OUT/replay.json``. Check a chosen setting in the env with ``ring_base_probe.py`` before training on it::
@@ -133,9 +142,10 @@ def main(argv=None) -> dict:
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
     from mixed_traffic.evaluation.policies import residual_base_factory
-    from mixed_traffic.evaluation.replay import record_head_traces, replay, replay_settings, stack_traces
+    from mixed_traffic.evaluation.replay import DriveOffLaw, record_head_traces, replay, replay_settings, stack_traces
     from mixed_traffic.training.builders import residual_base
     from mixed_traffic.validation import validate_config
+    from transforms import DriveOffCap
 
     torch.set_num_threads(1)
 
@@ -159,7 +169,15 @@ def main(argv=None) -> dict:
     def law(extra):
         """The setting's controller: the base of its Hydra overrides, or (``--classic``) the classical model."""
         if a.classic is None:
-            return residual_base(config(extra).transforms.residual, env).module.double()
+            rcfg = config(extra).transforms.residual
+            base = residual_base(rcfg, env).module.double()
+            d = rcfg.get("drive_off")
+            if d is None or d.get("gain") is None:
+                return base
+            # the deployed chain's drive-off cap over the base (transforms.residual.drive_off), with its memory
+            cap = DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
+                              standstill=d.standstill, dt=float(env.scenario.dt))
+            return DriveOffLaw(base, cap)
         params = {**classic_set, **{k: float(v) for k, v in (o.split("=", 1) for o in extra)}}
         return make_classic_policy(a.classic, env, **params).module.double()
 

@@ -137,3 +137,19 @@ def test_it_engages_only_when_the_car_and_its_leader_have_both_stopped():
     assert step(0.3, 2.0) == (False, 2.0)  # the leader still drives: untouched
     engaged, executed = step(0.3, 0.2)
     assert engaged and executed == pytest.approx(1.0 * (0.2 + 0.15 - 0.3))
+
+
+def test_the_replayed_law_under_the_cap_commands_what_the_env_executes():
+    """``DriveOffLaw`` (the cap with its memory, for ``ring_base_replay.py``) gives the transform's commands on the
+    states of the env's own rollout, step by step."""
+    from mixed_traffic.evaluation.replay import DriveOffLaw
+
+    env, td = _idm_rollout(700, cap=DriveOffCap(), **STOP)
+    law = DriveOffLaw(make_classic_policy("idm", env.base_env).module, DriveOffCap())
+    law.reset_state()
+    gap, v, v_l = (td[k][0, :, 0] for k in (("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")))
+    replayed = torch.stack([law(gap[t:t + 1], v[t:t + 1], v_l[t:t + 1])[0] for t in range(gap.shape[0])])
+    moving = td["next", "cav", "speed"][0, :, 0] > 0.05  # at a standstill the env executes less than commanded
+    torch.testing.assert_close(replayed.clamp(-3.0, 3.0)[moving], td["next", "cav", "accel"][0, :, 0][moving],
+                               atol=1e-3, rtol=0)
+    assert bool(td["next", "drive_off", "engaged"].any())  # the cap acted in this rollout

@@ -88,6 +88,20 @@ class DriveOffCap(Transform):
         lift = ((projected - self.gaps[0]) / (self.gaps[1] - self.gaps[0])).clamp(0.0, 1.0)
         return cap, lift
 
+    def apply(self, a: torch.Tensor, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
+              engaged: torch.Tensor, calm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of the rule on tensors of one shape: ``(executed, engaged, calm)`` after the command ``a``
+        and the state ``(engaged, calm)`` before it (what the transform does to a tensordict; a replayed law
+        calls it directly, :class:`mixed_traffic.evaluation.replay.DriveOffLaw`)."""
+        engaged = engaged | ((speed < self.standstill) & (leader_speed < self.standstill))  # both stopped
+        cap, lift = self.cap(gap, speed, leader_speed)
+        capped = torch.minimum(a, cap)
+        executed = torch.where(engaged, capped + lift * (a - capped), a)
+        calm = torch.where(engaged & (speed >= leader_speed - self.match) & (a <= cap), calm + self.dt,
+                           torch.zeros_like(a))
+        released = calm >= self.release - 1e-9
+        return executed, engaged & ~released, torch.where(released, torch.zeros_like(calm), calm)
+
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = tensordict.get(self.action_key, None)
         if a is None:
@@ -99,16 +113,11 @@ class DriveOffCap(Transform):
             raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "
                                "TransformedEnv before stepping it")
         gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
-        engaged = engaged.reshape(a.shape) | ((v < self.standstill) & (v_l < self.standstill))  # both stopped
-        cap, lift = self.cap(gap, v, v_l)
-        capped = torch.minimum(a, cap)
-        executed = torch.where(engaged, capped + lift * (a - capped), a)
-        calm = torch.where(engaged & (v >= v_l - self.match) & (a <= cap), calm.reshape(a.shape) + self.dt,
-                           torch.zeros_like(a))
-        released = calm >= self.release - 1e-9
+        executed, engaged_next, calm_next = self.apply(a, gap, v, v_l, engaged.reshape(a.shape),
+                                                       calm.to(a.dtype).reshape(a.shape))
         tensordict.set(self.action_key, executed)
-        tensordict.set(ENGAGED, (engaged & ~released).reshape(tensordict.get(ENGAGED).shape))
-        tensordict.set(CALM, torch.where(released, torch.zeros_like(calm), calm).reshape(tensordict.get(CALM).shape))
+        tensordict.set(ENGAGED, engaged_next.reshape(engaged.shape))
+        tensordict.set(CALM, calm_next.to(calm.dtype).reshape(calm.shape))
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

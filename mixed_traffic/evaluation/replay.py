@@ -105,11 +105,45 @@ def _advance(v: torch.Tensor, a: torch.Tensor, dt: float,
     return integrate(torch.zeros_like(v), v, a, dt, method)
 
 
+class DriveOffLaw(torch.nn.Module):
+    """``law`` followed by a :class:`transforms.DriveOffCap`, as the deployed chain applies it, replayable: the
+    cap's state (engaged, calm) lives in the module and :func:`replay` clears it at the start of each replay.
+
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.controllers.classic import make_classic_policy
+        >>> from transforms import DriveOffCap
+        >>> law = DriveOffLaw(make_classic_policy("idm", make_env("ring", batch_size=1, seed=0)).module, DriveOffCap())
+        >>> law.reset_state(); law(torch.tensor([8.0]), torch.tensor([0.2]), torch.tensor([0.3]))  # both stopped: capped
+        tensor([0.2500])
+    """
+
+    def __init__(self, law, cap):
+        super().__init__()
+        self.law, self.cap = law, cap
+        self.reset_state()
+
+    @property
+    def reads_leader_accel(self) -> bool:
+        return reads_leader_accel(self.law)
+
+    def reset_state(self) -> None:
+        self._engaged = self._calm = None
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
+        a = self.law(gap, speed, leader_speed, *extra)
+        if self._engaged is None or self._engaged.shape != a.shape:
+            self._engaged, self._calm = torch.zeros_like(a, dtype=torch.bool), torch.zeros_like(a)
+        executed, self._engaged, self._calm = self.cap.apply(a, gap.to(a), speed.to(a), leader_speed.to(a),
+                                                             self._engaged, self._calm)
+        return executed
+
+
 def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: float, settle: float,
            integration: str = "euler") -> dict[str, torch.Tensor]:
     """The CAV driven by ``law`` behind ``trace``'s head, from the recorded start state.
 
-    ``law(gap, speed, leader_speed)`` maps ``[episodes]`` tensors (float64) to commands, clipped to
+    ``law(gap, speed, leader_speed)`` maps ``[episodes]`` tensors (float64) to commands (a law with memory, such
+    as :class:`DriveOffLaw`, has ``reset_state()`` called first), clipped to
     ``[low, high]`` as the env clips an action (a module in float32 can be replayed as it is, or after
     ``.double()``). A law whose ``reads_leader_accel`` is true (CACC) is called as
     ``law(gap, speed, leader_speed, leader_accel)`` with the head's acceleration of the last step, as the
@@ -135,6 +169,8 @@ def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: flo
     # the head's acceleration of the last step: what ("cav", "leader_accel") holds when step k is decided
     a_seen = torch.cat([torch.zeros_like(a_head[:, :1]), a_head[:, :-1]], 1)
     reads_accel = reads_leader_accel(law)
+    if hasattr(law, "reset_state"):  # a law with memory (DriveOffLaw) starts afresh
+        law.reset_state()
     for k in range(vh.shape[1]):
         a = law(gap, v, v_head[:, k], a_seen[:, k]) if reads_accel else law(gap, v, v_head[:, k])
         a = a.to(f64).clamp(low, high)
