@@ -101,7 +101,9 @@ def test_bad_settings_name_the_argument(kwargs, match):
 
 def test_the_config_puts_it_before_the_residual_at_deployment_only():
     cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off"]))
-    deployed = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=True).transform]
+    env = make_transformed_env(cfg, num_envs=2, seed=0, deploy=True)
+    check_env_specs(env)
+    deployed = [type(t).__name__ for t in env.transform]
     assert deployed[deployed.index("SafetyLayer"):deployed.index("ResidualAction") + 1] == \
         ["SafetyLayer", "DriveOffCap", "ResidualAction"]
     trained = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=1, seed=0).transform]
