@@ -80,8 +80,9 @@ class DriveOffCap(Transform):
         self.release, self.standstill, self.match, self.dt = float(release), float(standstill), float(match), float(dt)
         self.action_key = action_key
 
-    def cap(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        """The cap (m/s^2) where it holds in full, and how far it is lifted (0: not at all, 1: gone)."""
+    def cap(self, gap: torch.Tensor, speed: torch.Tensor,
+            leader_speed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(cap, lift)``: the cap (m/s^2) where it holds in full, and how far it is lifted (0: not at all, 1: gone)."""
         cap = self.gain * (leader_speed + self.overspeed - speed)
         deficit = (leader_speed - speed).clamp_min(0.0)
         projected = gap + deficit * deficit / (2.0 * self.accel)
