@@ -134,3 +134,27 @@ def test_sumo_measures_the_true_state_under_sensor_noise(sensor_filter):
     for key in ("min_gap", "max_head_gap", "speed_rmse", "mean_abs_jerk"):
         assert rep["profiles"]["random_steps"]["per_episode"][key] == pytest.approx(
             exact["profiles"]["random_steps"]["per_episode"][key], abs=1e-3), key
+
+
+def test_the_drive_off_cap_acts_in_sumo_as_on_torch():
+    """Behind a head that stops and drives off, the deployed cap keeps the CAV from passing the head's speed to
+    close the gap, in SUMO as on torch: once the head holds its speed, the CAV stays within the overspeed of it,
+    where the base alone passes it by about a metre per second."""
+    from omegaconf import OmegaConf, open_dict
+
+    stop = {"times": [0.0, 10.0, 17.5, 23.5, 31.0, 70.0], "speeds": [15.0, 15.0, 0.0, 0.0, 15.0, 15.0]}
+    zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])
+    over = {}
+    for name in ("ring_lagrangian_ppo_v2v", "ring_lagrangian_ppo_drive_off"):
+        cfg = compose([f"experiment={name}", "eval.profiles=[piecewise]"])
+        with open_dict(cfg):
+            cfg.eval.profile_kwargs = OmegaConf.create({"piecewise": stop})
+        kw = dict(policy_factory=lambda env: zero, profiles=["piecewise"], episodes=1, seed=7, episode_seconds=70.0)
+        for backend in ("sumo", "torch"):
+            run = evaluate_on_sumo(cfg, workers=0, **kw) if backend == "sumo" else evaluate_on_torch_seeds(cfg, **kw)
+            tr = run[1]["piecewise"]
+            held = tr.time >= 33.0  # the head holds 15 m/s from 31 s
+            over[name, backend] = float((tr.cav_speed - tr.head_speed)[held].max())
+    for backend in ("sumo", "torch"):
+        assert over["ring_lagrangian_ppo_v2v", backend] > 0.8, over  # the base passes the head's speed
+        assert over["ring_lagrangian_ppo_drive_off", backend] < 0.16, over  # under the cap: the overspeed, 0.15 m/s
