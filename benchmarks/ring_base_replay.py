@@ -143,9 +143,8 @@ def main(argv=None) -> dict:
     from mixed_traffic.controllers.classic import make_classic_policy
     from mixed_traffic.evaluation.policies import residual_base_factory
     from mixed_traffic.evaluation.replay import DriveOffLaw, record_head_traces, replay, replay_settings, stack_traces
-    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.training.builders import drive_off_cap, residual_base
     from mixed_traffic.validation import validate_config
-    from transforms import DriveOffCap
 
     torch.set_num_threads(1)
 
@@ -171,13 +170,8 @@ def main(argv=None) -> dict:
         if a.classic is None:
             rcfg = config(extra).transforms.residual
             base = residual_base(rcfg, env).module.double()
-            d = rcfg.get("drive_off")
-            if d is None or d.get("gain") is None:
-                return base
-            # the deployed chain's drive-off cap over the base (transforms.residual.drive_off), with its memory
-            cap = DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
-                              standstill=d.standstill, dt=float(env.scenario.dt))
-            return DriveOffLaw(base, cap)
+            cap = drive_off_cap(rcfg, env)  # the deployed chain's drive-off cap over the base, with its memory
+            return base if cap is None else DriveOffLaw(base, cap)
         params = {**classic_set, **{k: float(v) for k, v in (o.split("=", 1) for o in extra)}}
         return make_classic_policy(a.classic, env, **params).module.double()
 

@@ -303,16 +303,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and fade_mode == "off"):
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
-    gaps = OmegaConf.select(cfg, "transforms.residual.drive_off.gaps", default=None)
-    if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
-                                 and 0 <= gaps[0] < gaps[1]):
-        raise ConfigError("transforms.residual.drive_off.gaps", repr(gaps),
-                          "[from, full] with 0 <= from < full (m)")
-    gaps = OmegaConf.select(cfg, "transforms.residual.catch_up.gaps", default=None)
-    if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
-                                 and 0 <= gaps[0] < gaps[1]):
-        raise ConfigError("transforms.residual.catch_up.gaps", repr(gaps),
-                          "[from, full] with 0 <= from < full (m)")
+    for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
+        gaps = OmegaConf.select(cfg, name, default=None)
+        if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
+                                     and 0 <= gaps[0] < gaps[1]):
+            raise ConfigError(name, repr(gaps), "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

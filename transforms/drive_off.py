@@ -26,6 +26,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import carry_to_next, kept_rows
+
 GAP, SPEED, LEADER_SPEED = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
 
@@ -122,19 +124,14 @@ class DriveOffCap(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        for key in (ENGAGED, CALM):
-            next_tensordict.set(key, tensordict.get(key))
-        return next_tensordict
+        return carry_to_next(tensordict, next_tensordict, ENGAGED, CALM)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         v = tensordict_reset.get(SPEED)
         engaged, calm = torch.zeros_like(v, dtype=torch.bool), torch.zeros_like(v)
-        mask = tensordict.get("_reset", None) if tensordict is not None else None
-        old_engaged = tensordict.get(ENGAGED, None) if tensordict is not None else None
-        if mask is not None and old_engaged is not None:  # rows not reset keep their state
-            keep = ~mask.reshape(*mask.shape[:len(tensordict.batch_size)], *([1] * (v.dim() - len(tensordict.batch_size))))
-            keep = keep.expand_as(v)
-            engaged = torch.where(keep, old_engaged, engaged)
+        keep = kept_rows(tensordict, v, ENGAGED)
+        if keep is not None:  # rows not reset keep their state
+            engaged = torch.where(keep, tensordict.get(ENGAGED), engaged)
             calm = torch.where(keep, tensordict.get(CALM), calm)
         tensordict_reset.set(ENGAGED, engaged)
         tensordict_reset.set(CALM, calm)

@@ -206,7 +206,7 @@ class MeasurementFilter(Transform):
         if self.delay:  # the newest acceleration moves the leader (and the head) and walks by w_1 per step
             moved = (0, 2, 3, 4) if head_from_leader else (0, 2)
             for i in moved:
-                F[i, 10] = B[i, 1] + B[i, 2] if head_from_leader else B[i, 1]
+                F[i, 10] = B[i, 1] + B[i, 2]  # the leader's rows carry B's leader column, the head's its head column
             G[:, 1] = F[:, 10].clone()
             G[10, 1] = 1.0
             B[:, 1] = 0.0

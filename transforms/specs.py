@@ -61,6 +61,19 @@ def carry_to_next(tensordict, next_tensordict, *keys):
     return next_tensordict
 
 
+def kept_rows(tensordict, like: torch.Tensor, state_key) -> torch.Tensor | None:
+    """Where a reset keeps a transform's state: ``True`` on the rows a partial reset (``"_reset"`` in
+    ``tensordict``) leaves alone, broadcast to ``like``'s shape; None when every row starts afresh (a full reset,
+    or no state ``state_key`` from before to keep)."""
+    if tensordict is None:
+        return None
+    mask = tensordict.get("_reset", None)
+    if mask is None or tensordict.get(state_key, None) is None:
+        return None
+    nb = len(tensordict.batch_size)
+    return (~mask.reshape(*mask.shape[:nb], *([1] * (like.dim() - nb)))).expand_as(like)
+
+
 def profile_table(owner: str, field: str, values: dict, kinds) -> torch.Tensor:
     """One value per profile name of ``kinds`` (NaN where ``values`` has none), validated: a non-empty
     mapping from names in ``kinds`` to values > 0; ``owner`` and ``field`` name it in the error."""

@@ -16,6 +16,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import kept_rows
+
 LEADER_ACCEL = ("cav", "leader_accel")
 
 
@@ -72,12 +74,9 @@ class V2VChannel(Transform):
         now = tensordict_reset.get(self.accel_key)
         sent = now.unsqueeze(-1).expand(*now.shape, self.delay_steps).clone()
         held = now.clone()
-        mask = tensordict.get("_reset", None) if tensordict is not None else None
-        old_sent = tensordict.get(self.sent_key, None) if tensordict is not None else None
-        if mask is not None and old_sent is not None:  # rows not reset keep their link
-            keep = ~mask.reshape(*mask.shape[:len(tensordict.batch_size)], *([1] * (now.dim() - len(tensordict.batch_size))))
-            keep = keep.expand_as(now)
-            sent = torch.where(keep.unsqueeze(-1), old_sent, sent)
+        keep = kept_rows(tensordict, now, self.sent_key)
+        if keep is not None:  # rows not reset keep their link
+            sent = torch.where(keep.unsqueeze(-1), tensordict.get(self.sent_key), sent)
             held = torch.where(keep, tensordict.get(self.held_key), held)
             tensordict_reset.set(self.accel_key, held)
         tensordict_reset.set(self.sent_key, sent)

@@ -197,8 +197,20 @@ def _sensor_noise(tcfg, env):
         raise ValueError(f"transforms.sensor_noise: {err}") from None
 
 
+def drive_off_cap(rcfg, env):
+    """The :class:`transforms.DriveOffCap` of ``transforms.residual.drive_off`` (``rcfg``: the ``residual`` node) for
+    ``env``'s step, or None when its ``gain`` is null (off). Where it acts (deploy or always) is the caller's."""
+    from transforms import DriveOffCap
+
+    d = rcfg.get("drive_off")
+    if d is None or d.get("gain") is None:
+        return None
+    return DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
+                       standstill=d.standstill, dt=float(env.scenario.dt))
+
+
 def _residual_idm(tcfg, env, *, deploy: bool = False):
-    from transforms import DriveOffCap, ResidualAction
+    from transforms import ResidualAction
 
     r = tcfg.residual
     try:
@@ -212,13 +224,10 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
                                   fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
                                   slack_key=slack_key, fade_slack=fade_slack)
-        d = r.get("drive_off")
-        if d is None or d.get("gain") is None or not (deploy or d.get("when", "deploy") == "always"):
+        cap = drive_off_cap(r, env)
+        if cap is None or not (deploy or r.drive_off.get("when", "deploy") == "always"):
             return residual
-        # the cap stands before the residual in the chain: the action passes the residual first, then the cap
-        cap = DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
-                          standstill=d.standstill, dt=float(env.scenario.dt))
-        return [cap, residual]
+        return [cap, residual]  # the action passes the residual first, then the cap
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
