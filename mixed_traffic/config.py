@@ -82,6 +82,9 @@ class SafetyLayerConfig:
     # "ramp" (hold, and push with a demand rising at ramp_jerk m/s^3 from the current acceleration) or
     # "recover" (close it at least at (gap - s_max) / recover_seconds)
     beyond_s_max: str = "push"
+    # the rule beyond s_max where the chain is built for evaluation or deployment (null: beyond_s_max, as in
+    # training); the layer's s_min rule, its guarantee, is the same either way
+    deployed_beyond_s_max: str | None = None
     ramp_jerk: float = 1.0
     recover_seconds: float = 5.0
     # during the first hold_seconds of an episode a head gap beyond s_max is only held (0: push from the start)

@@ -120,6 +120,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.safety_layer.s_max": Real(0, lo_open=True, optional=True),  # null: no head-gap bound
     "transforms.safety_layer.mode": OneOf(("stopping", "one_step")),
     "transforms.safety_layer.beyond_s_max": OneOf(("push", "hold", "ramp", "recover")),
+    "transforms.safety_layer.deployed_beyond_s_max": OneOf((None, "push", "hold", "ramp", "recover")),
     "transforms.safety_layer.ramp_jerk": Real(0, lo_open=True),
     "transforms.safety_layer.recover_seconds": Real(0, lo_open=True),
     "transforms.safety_layer.hold_seconds": Real(0),

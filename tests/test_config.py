@@ -396,16 +396,30 @@ def test_v2v_experiment_is_the_wide_band_with_a_brake_floor_and_a_longer_apg_ave
     assert OmegaConf.to_container(v2v) == OmegaConf.to_container(wide)
 
 
-def test_the_default_is_v2v_with_a_drive_off_cap_at_deployment_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_drive_off`` (the default) trains as ``ring_lagrangian_ppo_v2v`` and adds the
-    drive-off cap where the policy is evaluated or deployed."""
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+def test_the_drive_off_experiment_is_v2v_with_a_drive_off_cap_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_drive_off`` trains as ``ring_lagrangian_ppo_v2v`` and adds the drive-off cap
+    where the policy is evaluated or deployed."""
     from mixed_traffic.validation import validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_drive_off"
     d, v2v = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_drive_off", "ring_lagrangian_ppo_v2v"))
     validate_config(d)
     assert d.transforms.residual.drive_off.gain == 1.0 and d.transforms.residual.drive_off.when == "deploy"
     with open_dict(d):
         d.transforms.residual.drive_off, d.name = v2v.transforms.residual.drive_off, v2v.name
     assert OmegaConf.to_container(d) == OmegaConf.to_container(v2v)
+
+
+def test_the_default_is_drive_off_with_the_layers_recover_rule_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_layer_recover`` (the default) trains as ``ring_lagrangian_ppo_drive_off``
+    and deploys the safety layer with ``recover`` beyond its s_max."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+    from mixed_traffic.validation import validate_config
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_layer_recover"
+    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_drive_off"))
+    validate_config(d)
+    assert d.transforms.safety_layer.deployed_beyond_s_max == "recover"
+    assert d.transforms.safety_layer.beyond_s_max == "push"
+    with open_dict(d):
+        d.transforms.safety_layer.deployed_beyond_s_max, d.name = None, prev.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)

@@ -196,13 +196,13 @@ def test_results_cli_says_what_paired_needs(capsys):
         main(["--paired", "--itself", "a", "--baseline", "b"])  # one table at a time
 
 
-def _generalization_json(path, *, jerk, gap, seed=2000, v2v=None, cacc=True):
+def _generalization_json(path, *, jerk, gap, seed=2000, v2v=None, cacc=True, layered=0.1):
     """A generalization.json of one case, as benchmarks/ring_generalization.py writes it."""
     def r(**kw):
         return {"collisions": 0, "min_gap": gap, "min_gap_after": gap, "max_head_gap": 30.0, "steady_rmse": 0.1,
                 "jerk": 0.1, "return": 100.0, "intervention_rate": 0.01, **kw}
 
-    case = {"seconds": 200.0, "policy": r(), "idm": r(),
+    case = {"seconds": 200.0, "policy": r(jerk=layered), "idm": r(),
             "policy_without_layer": {"standard (73.4 m)": r(jerk=jerk), "8 m": r(min_gap_after=gap + 1.0,
                                                                                  max_head_gap=36.0)}}
     if cacc:
@@ -218,12 +218,14 @@ def _generalization_json(path, *, jerk, gap, seed=2000, v2v=None, cacc=True):
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):
     from mixed_traffic.evaluation.results import generalization_table, main
 
-    a = _generalization_json(tmp_path / "s0", jerk=0.11, gap=7.5)
-    b = _generalization_json(tmp_path / "s1", jerk=0.13, gap=6.25, v2v={"delay": 0.0, "loss": 0.0}, cacc=False)
+    a = _generalization_json(tmp_path / "s0", jerk=0.11, gap=7.5, layered=0.15)
+    b = _generalization_json(tmp_path / "s1", jerk=0.13, gap=6.25, v2v={"delay": 0.0, "loss": 0.0}, cacc=False,
+                             layered=0.12)
     rows = generalization_table([a, b]).splitlines()
     assert rows[0] == "2 run(s); 4 episodes of 200 s a case, evaluation seed 2000."
-    # gaps over both starts and seeds; jerk against IDM's from the standard start; cacc only on one seed: left out
-    assert rows[-1] == "| sine_fast | 0 | 6.25–36.0 | +10.0..+30.0 % | 0.100 | +0.0 | 1.0 % |"
+    # gaps over both starts and seeds; jerk against IDM's from the standard start, then with the layer; cacc only on
+    # one seed: left out
+    assert rows[-1] == "| sine_fast | 0 | 6.25–36.0 | +10.0..+30.0 % | 0.100 | +0.0 | +20.0..+50.0 % | 1.0 % |"
     assert "cacc" in generalization_table([a]).splitlines()[2]
     c = _generalization_json(tmp_path / "s2", jerk=0.1, gap=7.0, seed=5000)
     d = _generalization_json(tmp_path / "s3", jerk=0.1, gap=7.0, v2v={"delay": 0.5, "loss": 0.0})

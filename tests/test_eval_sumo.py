@@ -58,17 +58,19 @@ def test_sumo_evaluates_the_deployed_chain_as_torch_does():
     """The default's chain on SUMO is the one the torch evaluation runs: deployed (the drive-off lift and the
     envelope fade of ``deploy`` on) and without the training-only jerk price, so the return, the jerk and the
     gaps of the same episode agree across the backends (the residual at zero: the classical base drives)."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
     from mixed_traffic.evaluation.harness import eval_env_overrides
     from mixed_traffic.evaluation.sumo import make_sumo_eval_env
-    from transforms import DriveOffCap, JerkPenalty, ResidualAction
+    from transforms import DriveOffCap, JerkPenalty, ResidualAction, SafetyLayer
 
-    cfg = compose(["experiment=ring_lagrangian_ppo_drive_off", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    cfg = compose([f"experiment={DEFAULT_EXPERIMENT}", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
     assert "jerk_penalty" in cfg.transforms.chain and cfg.transforms.residual.envelope_fade == "deploy"
     env = make_sumo_eval_env(cfg, [7], in_process=True, **eval_env_overrides(cfg, "random_steps"))
     try:
         assert not any(isinstance(t, JerkPenalty) for t in env.transform)
         assert next(t for t in env.transform if isinstance(t, ResidualAction)).room_key is not None  # deployed
         assert any(isinstance(t, DriveOffCap) for t in env.transform)  # ... with the drive-off cap
+        assert next(t for t in env.transform if isinstance(t, SafetyLayer)).beyond_s_max == "recover"  # ... and rule
     finally:
         env.close()
     zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])

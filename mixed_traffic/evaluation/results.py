@@ -189,8 +189,8 @@ def generalization_table(dirs) -> str:
 
     Columns, the policy without its layer: the gaps after the warm-up over every start and run (smallest gap,
     largest head gap); collisions with and without the layer; its jerk and return against IDM-as-CAV's (the
-    ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; the layer's
-    largest share of steps (with it); then the jerk against IDM-as-CAV's of every other baseline all the runs
+    ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; its jerk
+    against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against IDM-as-CAV's of every other baseline all the runs
     evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
     cases were evaluated on other episodes, over another V2V link or with other measurement noise.
     """
@@ -213,7 +213,8 @@ def generalization_table(dirs) -> str:
     others = [k for k in ref["results"][cases[0]] if k not in skip
               and all(k in g["results"][c] for _, g in runs for c in cases)]
     link, noise = ref["v2v"], ref["sensor_noise"]
-    head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's", "layer's share",
+    head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's", "with the layer: jerk − IDM's",
+            "layer's share",
             *(f"{o}: jerk − IDM's" for o in others)]
     lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
              f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
@@ -225,7 +226,7 @@ def generalization_table(dirs) -> str:
                 if noise["gap"] or noise["speed"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in cases:
-        coll, gmin, gmax, jerk, rmse, ret, layer = 0, math.inf, -math.inf, [], [], [], []
+        coll, gmin, gmax, jerk, rmse, ret, layered, layer = 0, math.inf, -math.inf, [], [], [], [], []
         other = {o: [] for o in others}
         for _, g in runs:
             x = g["results"][c]
@@ -241,11 +242,12 @@ def generalization_table(dirs) -> str:
             jerk.append(100.0 * (free[std]["jerk"] / idm["jerk"] - 1.0))
             rmse.append(free[std]["steady_rmse"])
             ret.append(free[std]["return"] - idm["return"])
+            layered.append(100.0 * (x["policy"]["jerk"] / idm["jerk"] - 1.0))
             layer.append(100.0 * x["policy"]["intervention_rate"])
             for o in others:
                 other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
         cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f"),
-                 _span(ret, "+.1f"), f"{max(layer):.1f} %", *(_span(v, "+.1f", " %") for v in other.values())]
+                 _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %", *(_span(v, "+.1f", " %") for v in other.values())]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -59,11 +59,16 @@ def _counterfactual_reward(tcfg, env):
                                 collision_reward=c.collision_reward)
 
 
-def _safety_layer(tcfg, env):
+def _safety_layer(tcfg, env, *, deploy: bool = False):
+    """``transforms.safety_layer``; built for evaluation or deployment (``deploy``), its rule beyond ``s_max`` is
+    ``deployed_beyond_s_max`` where that is set."""
     from transforms import SafetyLayer
 
     s = tcfg.safety_layer
-    return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode, beyond_s_max=s.get("beyond_s_max", "push"),
+    beyond = s.get("beyond_s_max", "push")
+    if deploy and s.get("deployed_beyond_s_max") is not None:
+        beyond = s.deployed_beyond_s_max
+    return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode, beyond_s_max=beyond,
                        ramp_jerk=s.get("ramp_jerk", 1.0), recover_seconds=s.get("recover_seconds", 5.0),
                        hold_seconds=s.get("hold_seconds", 0.0), gap_margin=s.get("gap_margin", 0.0),
                        speed_margin=s.get("speed_margin", 0.0))
@@ -350,7 +355,7 @@ TRANSFORMS: dict[str, Callable] = {
 #: transforms that shape training only; the evaluation runs the env without them
 TRAINING_ONLY = ("conflict_cost", "jerk_penalty", "v2v_channel", "sensor_noise")  # the evaluated link and noise:
 # eval.v2v_* and eval.sensor_noise_*
-DEPLOY_AWARE = ("residual_idm",)  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
+DEPLOY_AWARE = ("residual_idm", "safety_layer")  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
 
 
 def check_chain(chain) -> None:

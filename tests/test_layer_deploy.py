@@ -1,0 +1,77 @@
+"""The safety layer's rule beyond s_max where the policy is deployed (transforms.safety_layer.deployed_beyond_s_max)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from omegaconf import OmegaConf, open_dict
+
+from mixed_traffic.config import compose
+from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.validation import ConfigError, validate_config
+
+# the head cruises at 25 m/s; the CAV starts 73.4 m behind it, the ring's spread start
+FAST_FAR = dict(profile="piecewise", profile_kwargs={"times": [0, 400], "speeds": [25, 25]},
+                init_spacing_range=(73.4, 73.4))
+
+
+def _layer(cfg, *, deploy: bool):
+    env = make_transformed_env(cfg, num_envs=1, seed=0, deploy=deploy)
+    return next(t for t in env.transform if type(t).__name__ == "SafetyLayer")
+
+
+def test_the_deployed_rule_replaces_the_trained_one_only_where_the_chain_is_deployed():
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_layer_recover"]))
+    assert _layer(cfg, deploy=True).beyond_s_max == "recover"
+    assert _layer(cfg, deploy=False).beyond_s_max == "push"  # the training's rule, so the weights do not move
+    unset = validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off"]))
+    assert _layer(unset, deploy=True).beyond_s_max == _layer(unset, deploy=False).beyond_s_max == "push"
+
+
+def test_the_deployed_recover_rule_does_not_throw_the_car_forward_after_the_hold():
+    """The base alone (residual 0) behind a 25 m/s head from the 73.4-m start: when the layer's 15-s hold ends the
+    gap is still beyond s_max (38 m). ``push`` then commands +3 m/s^2 and the car brakes right after; ``recover``
+    leaves the base's own closing alone, and the gap is back in the band all the same."""
+    out = {}
+    for name in ("ring_lagrangian_ppo_drive_off", "ring_lagrangian_ppo_layer_recover"):
+        cfg = validate_config(compose([f"experiment={name}"]))
+        env = make_transformed_env(cfg, num_envs=1, seed=0, deploy=True, **FAST_FAR)
+        with torch.no_grad():
+            td = env.rollout(300, lambda td: td.set("action", torch.zeros(1, 1)), break_when_any_done=False)
+        a, gap = td["next", "cav", "accel"].flatten(), td["next", "cav", "head_gap"].flatten()
+        out[name] = dict(clipped=int(td["next", "safety", "clipped"].sum()), top=float(a[140:200].max()),
+                         variation=float((a[1:] - a[:-1]).abs().sum()), gap_at_hold_end=float(gap[149]),
+                         late_gap=float(gap[200:].max()), collision=bool(td["next", "collision"].any()))
+    push, recover = out["ring_lagrangian_ppo_drive_off"], out["ring_lagrangian_ppo_layer_recover"]
+    assert push["gap_at_hold_end"] > 38.0 and recover["gap_at_hold_end"] == pytest.approx(push["gap_at_hold_end"])
+    assert push["clipped"] > 0 and push["top"] > 2.9
+    assert recover["clipped"] == 0 and recover["top"] < 0.0
+    assert recover["variation"] < 0.5 * push["variation"]
+    assert recover["late_gap"] < 38.0 and not recover["collision"] and not push["collision"]
+
+
+def test_the_s_min_rule_is_the_same_whichever_rule_beyond_s_max():
+    """The guarantee does not depend on the deployed rule: the same command is clipped the same way near s_min."""
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_layer_recover"]))
+    deployed, trained = _layer(cfg, deploy=True), _layer(cfg, deploy=False)
+    assert (deployed.s_min, deployed.mode, deployed.s_max) == (trained.s_min, trained.mode, trained.s_max)
+
+
+def test_a_bad_deployed_rule_fails_at_start_up_naming_the_field():
+    with pytest.raises(ConfigError, match=r"transforms.safety_layer.deployed_beyond_s_max.*'shove'.*recover"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off",
+                                 "transforms.safety_layer.deployed_beyond_s_max=shove"]))
+
+
+def test_a_checkpoint_saved_before_the_field_existed_deploys_its_own_rule():
+    """An old run's stored config lacks the field: it loads at null, so the layer deploys as it trained."""
+    from mixed_traffic.evaluation.policies import with_schema_defaults
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_drive_off"])
+    stored = OmegaConf.to_container(cfg)
+    del stored["transforms"]["safety_layer"]["deployed_beyond_s_max"]
+    loaded = with_schema_defaults(stored)
+    assert loaded.transforms.safety_layer.deployed_beyond_s_max is None
+    with open_dict(loaded):
+        loaded.transforms.safety_layer.beyond_s_max = "hold"
+    assert _layer(validate_config(loaded), deploy=True).beyond_s_max == "hold"
