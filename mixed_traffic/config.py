@@ -85,6 +85,9 @@ class SafetyLayerConfig:
     # the rule beyond s_max where the chain is built for evaluation or deployment (null: beyond_s_max, as in
     # training); the layer's s_min rule, its guarantee, is the same either way
     deployed_beyond_s_max: str | None = None
+    # false: where the chain is built for evaluation or deployment the layer keeps only its s_min rule, its
+    # guarantee, and the band's upper edge is the policy's own (as the band bar measures it, without the layer)
+    deployed_s_max: bool = True
     ramp_jerk: float = 1.0
     recover_seconds: float = 5.0
     # during the first hold_seconds of an episode a head gap beyond s_max is only held (0: push from the start)

@@ -121,6 +121,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.safety_layer.mode": OneOf(("stopping", "one_step")),
     "transforms.safety_layer.beyond_s_max": OneOf(("push", "hold", "ramp", "recover")),
     "transforms.safety_layer.deployed_beyond_s_max": OneOf((None, "push", "hold", "ramp", "recover")),
+    "transforms.safety_layer.deployed_s_max": OneOf((True, False)),
     "transforms.safety_layer.ramp_jerk": Real(0, lo_open=True),
     "transforms.safety_layer.recover_seconds": Real(0, lo_open=True),
     "transforms.safety_layer.hold_seconds": Real(0),
@@ -289,6 +290,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and not tc.safety_layer.s_min < tc.safety_layer.s_max):
         raise ConfigError("transforms.safety_layer.s_min", f"{tc.safety_layer.s_min} >= s_max {tc.safety_layer.s_max}",
                           "s_min < s_max")
+    if (tc is not None and "safety_layer" in tc and tc.safety_layer.get("deployed_s_max", True) is False
+            and tc.safety_layer.get("deployed_beyond_s_max") is not None):
+        raise ConfigError("transforms.safety_layer.deployed_beyond_s_max",
+                          f"{tc.safety_layer.deployed_beyond_s_max!r} has no effect with deployed_s_max: false "
+                          "(the deployed layer has no s_max)", "null, or deployed_s_max: true")
     _check_classic_params(cfg, "transforms.residual")
     fade = OmegaConf.select(cfg, "transforms.residual.fade_speeds", default=None)
     if fade is not None and not (OmegaConf.is_list(fade) and len(fade) == 2

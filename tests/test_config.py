@@ -409,17 +409,30 @@ def test_the_drive_off_experiment_is_v2v_with_a_drive_off_cap_at_deployment_and_
     assert OmegaConf.to_container(d) == OmegaConf.to_container(v2v)
 
 
-def test_the_default_is_drive_off_with_the_layers_recover_rule_at_deployment_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_layer_recover`` (the default) trains as ``ring_lagrangian_ppo_drive_off``
-    and deploys the safety layer with ``recover`` beyond its s_max."""
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+def test_the_layer_recover_experiment_is_drive_off_with_the_recover_rule_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_layer_recover`` trains as ``ring_lagrangian_ppo_drive_off`` and deploys the
+    safety layer with ``recover`` beyond its s_max."""
     from mixed_traffic.validation import validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_layer_recover"
-    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_drive_off"))
+    d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_layer_recover", "ring_lagrangian_ppo_drive_off"))
     validate_config(d)
     assert d.transforms.safety_layer.deployed_beyond_s_max == "recover"
     assert d.transforms.safety_layer.beyond_s_max == "push"
     with open_dict(d):
         d.transforms.safety_layer.deployed_beyond_s_max, d.name = None, prev.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
+
+
+def test_the_default_is_drive_off_with_the_layer_deployed_as_the_safety_net_alone_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_safety_net`` (the default) trains as ``ring_lagrangian_ppo_drive_off`` and
+    deploys the safety layer with its s_min rule only."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+    from mixed_traffic.validation import validate_config
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_safety_net"
+    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_drive_off"))
+    validate_config(d)
+    assert d.transforms.safety_layer.deployed_s_max is False and d.transforms.safety_layer.s_max == 38.0
+    with open_dict(d):
+        d.transforms.safety_layer.deployed_s_max, d.name = True, prev.name
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)

@@ -70,7 +70,7 @@ def test_sumo_evaluates_the_deployed_chain_as_torch_does():
         assert not any(isinstance(t, JerkPenalty) for t in env.transform)
         assert next(t for t in env.transform if isinstance(t, ResidualAction)).room_key is not None  # deployed
         assert any(isinstance(t, DriveOffCap) for t in env.transform)  # ... with the drive-off cap
-        assert next(t for t in env.transform if isinstance(t, SafetyLayer)).beyond_s_max == "recover"  # ... and rule
+        assert next(t for t in env.transform if isinstance(t, SafetyLayer)).s_max is None  # ... and the s_min rule alone
     finally:
         env.close()
     zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])

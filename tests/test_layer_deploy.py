@@ -1,4 +1,5 @@
-"""The safety layer's rule beyond s_max where the policy is deployed (transforms.safety_layer.deployed_beyond_s_max)."""
+"""The safety layer where the policy is deployed: its rule beyond s_max (transforms.safety_layer.deployed_beyond_s_max),
+or no s_max at all, the s_min rule alone (transforms.safety_layer.deployed_s_max: false)."""
 
 from __future__ import annotations
 
@@ -28,12 +29,39 @@ def test_the_deployed_rule_replaces_the_trained_one_only_where_the_chain_is_depl
     assert _layer(unset, deploy=True).beyond_s_max == _layer(unset, deploy=False).beyond_s_max == "push"
 
 
-def test_the_deployed_recover_rule_does_not_throw_the_car_forward_after_the_hold():
+def test_the_safety_net_deploys_the_s_min_rule_alone_and_trains_the_whole_layer():
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_safety_net"]))
+    deployed, trained = _layer(cfg, deploy=True), _layer(cfg, deploy=False)
+    assert deployed.s_max is None and trained.s_max == 38.0
+    assert (deployed.s_min, deployed.mode) == (trained.s_min, trained.mode) == (5.0, "stopping")
+
+
+@pytest.mark.parametrize("name", ["ring_lagrangian_ppo_layer_recover", "ring_lagrangian_ppo_safety_net"])
+def test_the_deployed_layer_keeps_its_guarantee(name):
+    """Full throttle behind a head that brakes to a standstill, through the deployed chain with the residual's
+    weight at zero replaced by the raw command: the layer alone keeps the 5-m gap, under either deployed form."""
+    from torchrl.envs import Compose, TransformedEnv
+
+    from mixed_traffic import make_env
+    from mixed_traffic.training.builders import _safety_layer
+
+    cfg = validate_config(compose([f"experiment={name}"]))
+    base = make_env("ring", batch_size=4, seed=0, profile="emergency_brake",
+                    profile_kwargs={"start": 20.0, "v_cruise": 25.0, "v_low": 0.0}, init_spacing_range=(8.0, 30.0))
+    env = TransformedEnv(base, Compose(_safety_layer(cfg.transforms, base, deploy=True)))
+    with torch.no_grad():
+        td = env.rollout(600, lambda td: td.set("action", torch.full((4, 1), 3.0)), break_when_any_done=False)
+    assert not bool(td["next", "collision"].any())
+    assert float(td["next", "cav", "gap"].min()) >= 5.0 - 1e-3
+
+
+def test_the_deployed_layer_does_not_throw_the_car_forward_after_the_hold():
     """The base alone (residual 0) behind a 25 m/s head from the 73.4-m start: when the layer's 15-s hold ends the
     gap is still beyond s_max (38 m). ``push`` then commands +3 m/s^2 and the car brakes right after; ``recover``
-    leaves the base's own closing alone, and the gap is back in the band all the same."""
+    leaves the base's own closing alone, and the gap is back in the band all the same; without a deployed s_max
+    the layer does not act at all and the base's closing is the same as under ``recover``."""
     out = {}
-    for name in ("ring_lagrangian_ppo_drive_off", "ring_lagrangian_ppo_layer_recover"):
+    for name in ("ring_lagrangian_ppo_drive_off", "ring_lagrangian_ppo_layer_recover", "ring_lagrangian_ppo_safety_net"):
         cfg = validate_config(compose([f"experiment={name}"]))
         env = make_transformed_env(cfg, num_envs=1, seed=0, deploy=True, **FAST_FAR)
         with torch.no_grad():
@@ -48,6 +76,8 @@ def test_the_deployed_recover_rule_does_not_throw_the_car_forward_after_the_hold
     assert recover["clipped"] == 0 and recover["top"] < 0.0
     assert recover["variation"] < 0.5 * push["variation"]
     assert recover["late_gap"] < 38.0 and not recover["collision"] and not push["collision"]
+    net = out["ring_lagrangian_ppo_safety_net"]
+    assert net["clipped"] == 0 and net["variation"] == pytest.approx(recover["variation"]) and not net["collision"]
 
 
 def test_the_s_min_rule_is_the_same_whichever_rule_beyond_s_max():
@@ -57,10 +87,24 @@ def test_the_s_min_rule_is_the_same_whichever_rule_beyond_s_max():
     assert (deployed.s_min, deployed.mode, deployed.s_max) == (trained.s_min, trained.mode, trained.s_max)
 
 
-def test_a_bad_deployed_rule_fails_at_start_up_naming_the_field():
-    with pytest.raises(ConfigError, match=r"transforms.safety_layer.deployed_beyond_s_max.*'shove'.*recover"):
-        validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off",
-                                 "transforms.safety_layer.deployed_beyond_s_max=shove"]))
+@pytest.mark.parametrize("overrides, match", [
+    (["transforms.safety_layer.deployed_beyond_s_max=shove"],
+     r"transforms.safety_layer.deployed_beyond_s_max: unknown value 'shove'; allowed: \[None, 'push'"),
+    (["transforms.safety_layer.deployed_s_max=false", "transforms.safety_layer.deployed_beyond_s_max=recover"],
+     r"transforms.safety_layer.deployed_beyond_s_max: 'recover' has no effect with deployed_s_max: false"),
+])
+def test_a_bad_deployed_layer_fails_at_start_up_naming_the_field(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_drive_off", *overrides]))
+
+
+def test_a_deployed_s_max_that_is_not_a_bool_fails_at_composition_naming_the_field():
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException) as e:
+        compose(["experiment=ring_lagrangian_ppo_drive_off", "transforms.safety_layer.deployed_s_max=maybe"])
+    assert "transforms.safety_layer.deployed_s_max" in str(e.value)
+    assert "not a valid bool" in str(e.value.__cause__)
 
 
 def test_a_checkpoint_saved_before_the_field_existed_deploys_its_own_rule():
@@ -72,6 +116,7 @@ def test_a_checkpoint_saved_before_the_field_existed_deploys_its_own_rule():
     del stored["transforms"]["safety_layer"]["deployed_beyond_s_max"]
     loaded = with_schema_defaults(stored)
     assert loaded.transforms.safety_layer.deployed_beyond_s_max is None
+    assert loaded.transforms.safety_layer.deployed_s_max is True
     with open_dict(loaded):
         loaded.transforms.safety_layer.beyond_s_max = "hold"
     assert _layer(validate_config(loaded), deploy=True).beyond_s_max == "hold"

@@ -61,14 +61,17 @@ def _counterfactual_reward(tcfg, env):
 
 def _safety_layer(tcfg, env, *, deploy: bool = False):
     """``transforms.safety_layer``; built for evaluation or deployment (``deploy``), its rule beyond ``s_max`` is
-    ``deployed_beyond_s_max`` where that is set."""
+    ``deployed_beyond_s_max`` where that is set, and it has no ``s_max`` at all with ``deployed_s_max: false``
+    (only the s_min rule, the guarantee)."""
     from transforms import SafetyLayer
 
     s = tcfg.safety_layer
-    beyond = s.get("beyond_s_max", "push")
+    beyond, s_max = s.get("beyond_s_max", "push"), s.s_max
     if deploy and s.get("deployed_beyond_s_max") is not None:
         beyond = s.deployed_beyond_s_max
-    return SafetyLayer(s_min=s.s_min, s_max=s.s_max, mode=s.mode, beyond_s_max=beyond,
+    if deploy and not s.get("deployed_s_max", True):
+        s_max = None
+    return SafetyLayer(s_min=s.s_min, s_max=s_max, mode=s.mode, beyond_s_max=beyond,
                        ramp_jerk=s.get("ramp_jerk", 1.0), recover_seconds=s.get("recover_seconds", 5.0),
                        hold_seconds=s.get("hold_seconds", 0.0), gap_margin=s.get("gap_margin", 0.0),
                        speed_margin=s.get("speed_margin", 0.0))
