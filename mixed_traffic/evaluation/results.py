@@ -190,8 +190,8 @@ def generalization_table(dirs) -> str:
     Columns, the policy without its layer: the gaps after the warm-up over every start and run (smallest gap,
     largest head gap); collisions with and without the layer; its jerk and return against IDM-as-CAV's (the
     ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; its jerk
-    against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against IDM-as-CAV's of every other baseline all the runs
-    evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
+    against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against
+    IDM-as-CAV's of every other baseline all the runs evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
     cases were evaluated on other episodes, over another V2V link or with other measurement noise.
     """
     runs = [(str(d), _generalization(d)) for d in dirs]
@@ -213,9 +213,8 @@ def generalization_table(dirs) -> str:
     others = [k for k in ref["results"][cases[0]] if k not in skip
               and all(k in g["results"][c] for _, g in runs for c in cases)]
     link, noise = ref["v2v"], ref["sensor_noise"]
-    head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's", "with the layer: jerk − IDM's",
-            "layer's share",
-            *(f"{o}: jerk − IDM's" for o in others)]
+    head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's",
+            "with the layer: jerk − IDM's", "layer's share", *(f"{o}: jerk − IDM's" for o in others)]
     lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
              f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
                                  if link["delay"] or link["loss"] else "")
@@ -247,7 +246,8 @@ def generalization_table(dirs) -> str:
             for o in others:
                 other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
         cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f"),
-                 _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %", *(_span(v, "+.1f", " %") for v in other.values())]
+                 _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %",
+                 *(_span(v, "+.1f", " %") for v in other.values())]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -358,7 +358,8 @@ TRANSFORMS: dict[str, Callable] = {
 #: transforms that shape training only; the evaluation runs the env without them
 TRAINING_ONLY = ("conflict_cost", "jerk_penalty", "v2v_channel", "sensor_noise")  # the evaluated link and noise:
 # eval.v2v_* and eval.sensor_noise_*
-DEPLOY_AWARE = ("residual_idm", "safety_layer")  # built differently for evaluation / deployment (make_transformed_env(deploy=True))
+# built differently for evaluation / deployment (make_transformed_env(deploy=True))
+DEPLOY_AWARE = ("residual_idm", "safety_layer")
 
 
 def check_chain(chain) -> None:
