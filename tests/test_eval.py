@@ -258,6 +258,10 @@ def test_report_from_a_trained_checkpoint(tmp_path):
     assert "Without the safety layer" in md and "λ over training" in md
     assert (tmp_path / "eval" / "random_steps_without_layer_close.png").stat().st_size > 1000
     assert data["overall"]["collisions"] == 0
+    # the report states the layer as it was evaluated
+    layer = cfg.transforms.safety_layer
+    assert (data["safety_layer"]["s_min"], data["safety_layer"]["s_max"]) == (layer.s_min, layer.s_max)
+    assert f"Safety layer as evaluated: s_min {layer.s_min:g} m" in md
 
 
 def test_evaluate_needs_exactly_one_policy(tmp_path):

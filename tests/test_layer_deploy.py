@@ -107,6 +107,21 @@ def test_a_deployed_s_max_that_is_not_a_bool_fails_at_composition_naming_the_fie
     assert "not a valid bool" in str(e.value.__cause__)
 
 
+@pytest.mark.parametrize("name, says", [
+    ("ring_lagrangian_ppo_safety_net", "s_min 5 m (stopping rule); no s_max: its s_min rule alone."),
+    ("ring_lagrangian_ppo_layer_recover", "s_min 5 m (stopping rule); s_max 38 m (recover beyond it, after a 15-s hold)."),
+    ("ring_lagrangian_ppo_drive_off", "s_min 5 m (stopping rule); s_max 38 m (push beyond it, after a 15-s hold)."),
+])
+def test_the_report_states_the_layer_as_it_was_deployed(name, says):
+    from mixed_traffic.evaluation.report import markdown
+    from mixed_traffic.training.builders import safety_layer_settings
+
+    cfg = compose([f"experiment={name}"])
+    report = {"episodes_per_profile": 1, "eval_seed": 0, "profiles": {},
+              "safety_layer": safety_layer_settings(cfg.transforms.safety_layer, deploy=True)}
+    assert f"Safety layer as evaluated: {says}" in markdown(report, "t")
+
+
 def test_a_checkpoint_saved_before_the_field_existed_deploys_its_own_rule():
     """An old run's stored config lacks the field: it loads at null, so the layer deploys as it trained."""
     from mixed_traffic.evaluation.policies import with_schema_defaults

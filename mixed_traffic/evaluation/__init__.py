@@ -80,6 +80,10 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     report["policy"] = label
     report["env"] = OmegaConf.to_container(eval_cfg.env, resolve=True)
     report["transforms"] = list(eval_cfg.transforms.chain)
+    if "safety_layer" in eval_cfg.transforms.chain:  # the layer as it was deployed here (noise margins aside)
+        from mixed_traffic.training.builders import safety_layer_settings
+
+        report["safety_layer"] = safety_layer_settings(eval_cfg.transforms.safety_layer, deploy=True)
     paths = write_report(report, out_dir, traces, title=title or label, plot_episode=cfg.eval.plot_episode,
                          s_min=cfg.eval.s_min, s_max=cfg.eval.s_max, run_dir=run_dir)
     report["paths"] = {k: str(v) for k, v in paths.items()}

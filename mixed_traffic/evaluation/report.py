@@ -63,6 +63,12 @@ def markdown(report: dict, title: str) -> str:
         lines += [f"policy: `{report['policy']}`", ""]
     lines += [f"{report['episodes_per_profile']} deterministic episodes per profile, evaluation seed "
               f"{report['eval_seed']}; mean ± std over episodes (collisions: total).", ""]
+    layer = report.get("safety_layer")
+    if layer:
+        upper = ("no s_max: its s_min rule alone" if layer["s_max"] is None else
+                 f"s_max {layer['s_max']:g} m ({layer['beyond_s_max']} beyond it"
+                 + (f", after a {layer['hold_seconds']:g}-s hold" if layer.get("hold_seconds") else "") + ")")
+        lines += [f"Safety layer as evaluated: s_min {layer['s_min']:g} m ({layer['mode']} rule); {upper}.", ""]
     v2v = report.get("v2v") or {}
     if v2v.get("delay") or v2v.get("loss"):
         lines += [f"V2V link: the leader's acceleration received {v2v['delay']:g} s late, {100 * v2v['loss']:g} % of "

@@ -59,22 +59,26 @@ def _counterfactual_reward(tcfg, env):
                                 collision_reward=c.collision_reward)
 
 
-def _safety_layer(tcfg, env, *, deploy: bool = False):
-    """``transforms.safety_layer``; built for evaluation or deployment (``deploy``), its rule beyond ``s_max`` is
-    ``deployed_beyond_s_max`` where that is set, and it has no ``s_max`` at all with ``deployed_s_max: false``
-    (only the s_min rule, the guarantee)."""
-    from transforms import SafetyLayer
-
-    s = tcfg.safety_layer
+def safety_layer_settings(s, *, deploy: bool = False) -> dict:
+    """The ``SafetyLayer`` arguments of ``transforms.safety_layer`` (``s``); built for evaluation or deployment
+    (``deploy``), its rule beyond ``s_max`` is ``deployed_beyond_s_max`` where that is set, and it has no
+    ``s_max`` at all with ``deployed_s_max: false`` (only the s_min rule, the guarantee). The evaluation report
+    states the deployed settings from here."""
     beyond, s_max = s.get("beyond_s_max", "push"), s.s_max
     if deploy and s.get("deployed_beyond_s_max") is not None:
         beyond = s.deployed_beyond_s_max
     if deploy and not s.get("deployed_s_max", True):
         s_max = None
-    return SafetyLayer(s_min=s.s_min, s_max=s_max, mode=s.mode, beyond_s_max=beyond,
-                       ramp_jerk=s.get("ramp_jerk", 1.0), recover_seconds=s.get("recover_seconds", 5.0),
-                       hold_seconds=s.get("hold_seconds", 0.0), gap_margin=s.get("gap_margin", 0.0),
-                       speed_margin=s.get("speed_margin", 0.0))
+    return dict(s_min=s.s_min, s_max=s_max, mode=s.mode, beyond_s_max=beyond, ramp_jerk=s.get("ramp_jerk", 1.0),
+                recover_seconds=s.get("recover_seconds", 5.0), hold_seconds=s.get("hold_seconds", 0.0),
+                gap_margin=s.get("gap_margin", 0.0), speed_margin=s.get("speed_margin", 0.0))
+
+
+def _safety_layer(tcfg, env, *, deploy: bool = False):
+    """``transforms.safety_layer``, as it trains or (``deploy``) as it is deployed (:func:`safety_layer_settings`)."""
+    from transforms import SafetyLayer
+
+    return SafetyLayer(**safety_layer_settings(tcfg.safety_layer, deploy=deploy))
 
 
 def _residual_damper(tcfg, env):
