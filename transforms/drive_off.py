@@ -26,7 +26,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import carry_to_next, kept_rows
+from transforms.specs import carry_to_next, entries_or_none, kept_rows
 
 GAP, SPEED, LEADER_SPEED = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
@@ -106,11 +106,10 @@ class DriveOffCap(Transform):
         return executed, engaged & ~released, torch.where(released, torch.zeros_like(calm), calm)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        a = tensordict.get(self.action_key, None)
-        if a is None:
-            if self.missing_tolerance:
-                return tensordict
-            raise KeyError(f"DriveOffCap: {self.action_key!r} not found in the input tensordict")
+        got = entries_or_none(self, tensordict, self.action_key)
+        if got is None:
+            return tensordict
+        (a,) = got
         engaged, calm = tensordict.get(ENGAGED, None), tensordict.get(CALM, None)
         if engaged is None or calm is None:
             raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "

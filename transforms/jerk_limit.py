@@ -11,7 +11,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import parent_dt
+from transforms.specs import entries_or_none, parent_dt
 
 
 class JerkLimit(Transform):
@@ -59,12 +59,10 @@ class JerkLimit(Transform):
         return self._dt
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        a = tensordict.get(self.action_key, None)
-        now = tensordict.get(self.accel_key, None)
-        if a is None or now is None:
-            if self.missing_tolerance:
-                return tensordict
-            raise KeyError(f"JerkLimit: {self.action_key!r} or {self.accel_key!r} not found in the input tensordict")
+        got = entries_or_none(self, tensordict, self.action_key, self.accel_key)
+        if got is None:
+            return tensordict
+        a, now = got
         step = self.max_jerk * self.dt
         now = now.to(a.dtype).reshape(a.shape)
         tensordict.set(self.action_key, torch.minimum(torch.maximum(a, now - step), now + step))

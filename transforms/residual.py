@@ -13,7 +13,13 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import action_shaped_full, carry_to_next, with_action_shaped_entry, with_bounded_action
+from transforms.specs import (
+    action_shaped_full,
+    carry_to_next,
+    entries_or_none,
+    with_action_shaped_entry,
+    with_bounded_action,
+)
 
 
 class ResidualAction(Transform):
@@ -135,11 +141,10 @@ class ResidualAction(Transform):
         return self.weight * torch.maximum(low.abs(), high.abs())
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        a_res = tensordict.get(self.action_key, None)
-        if a_res is None:
-            if self.missing_tolerance:
-                return tensordict
-            raise KeyError(f"ResidualAction: {self.action_key!r} not found in the input tensordict")
+        got = entries_or_none(self, tensordict, self.action_key)
+        if got is None:
+            return tensordict
+        (a_res,) = got
         base_out = self._run_base(tensordict)
         a_base = base_out.get(self.base_out_key).to(a_res.dtype).reshape(a_res.shape)
         low, high = self._bounds(a_res)

@@ -74,7 +74,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import action_shaped_full, carry_to_next, parent_dt
+from transforms.specs import action_shaped_full, carry_to_next, entries_or_none, parent_dt
 
 Tensor = torch.Tensor
 
@@ -460,11 +460,10 @@ class SafetyLayer(Transform):
 
     # -------------------------------------------------------------- transform API
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(self.action_key, None)
-        if action is None:
-            if self.missing_tolerance:
-                return tensordict
-            raise KeyError(f"SafetyLayer: {self.action_key!r} not found in the input tensordict")
+        got = entries_or_none(self, tensordict, self.action_key)
+        if got is None:
+            return tensordict
+        (action,) = got
         k = self.cav_keys
         low, high = self._bounds(action)
         need_head = self.s_max is not None

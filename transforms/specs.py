@@ -16,6 +16,18 @@ def action_range(env) -> float:
     return float((spec.space.high - spec.space.low).flatten()[0])
 
 
+def entries_or_none(transform, tensordict, *keys):
+    """``[tensordict[k] for k in keys]`` for an action transform's inverse step; ``None`` when one is missing and
+    the transform tolerates it (``missing_tolerance``, as TorchRL's ``Transform`` sets it), else ``KeyError``
+    naming the transform and the keys."""
+    values = [tensordict.get(k, None) for k in keys]
+    if all(v is not None for v in values):
+        return values
+    if transform.missing_tolerance:
+        return None
+    raise KeyError(f"{type(transform).__name__}: {' or '.join(repr(k) for k in keys)} not found in the input tensordict")
+
+
 def parent_dt(parent, owner: str) -> float:
     """The control step ``dt`` (s) of a transform's parent env (TransformedEnv forwards the base env's ``dt``);
     ``owner`` names the transform in the error when the env has none."""
