@@ -38,17 +38,19 @@ def test_the_safety_net_deploys_the_s_min_rule_alone_and_trains_the_whole_layer(
 
 @pytest.mark.parametrize("name", ["ring_lagrangian_ppo_layer_recover", "ring_lagrangian_ppo_safety_net"])
 def test_the_deployed_layer_keeps_its_guarantee(name):
-    """Full throttle behind a head that brakes to a standstill, through the deployed chain with the residual's
-    weight at zero replaced by the raw command: the layer alone keeps the 5-m gap, under either deployed form."""
+    """Full throttle behind a head that brakes to a standstill, through the experiment's layer as deployed and
+    nothing else: the layer alone keeps the 5-m gap, under either deployed form."""
     from torchrl.envs import Compose, TransformedEnv
 
     from mixed_traffic import make_env
-    from mixed_traffic.training.builders import _safety_layer
+    from mixed_traffic.training.builders import safety_layer_settings
+    from transforms import SafetyLayer
 
     cfg = validate_config(compose([f"experiment={name}"]))
     base = make_env("ring", batch_size=4, seed=0, profile="emergency_brake",
                     profile_kwargs={"start": 20.0, "v_cruise": 25.0, "v_low": 0.0}, init_spacing_range=(8.0, 30.0))
-    env = TransformedEnv(base, Compose(_safety_layer(cfg.transforms, base, deploy=True)))
+    layer = SafetyLayer(**safety_layer_settings(cfg.transforms.safety_layer, deploy=True))
+    env = TransformedEnv(base, Compose(layer))
     with torch.no_grad():
         td = env.rollout(600, lambda td: td.set("action", torch.full((4, 1), 3.0)), break_when_any_done=False)
     assert not bool(td["next", "collision"].any())
