@@ -206,13 +206,38 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
     return cfg, name
 
 
+def steadiness(per_episode: dict) -> dict:
+    """``steady_episodes``: how many of the episodes have steady samples (``steady_seconds`` > 0);
+    ``steady_seconds``: their mean length over all episodes (s); ``steady_only_rmse``: the mean steady RMSE of
+    the episodes that have them (None if none has). An episode without steady samples reports the whole-episode
+    RMSE as its steady RMSE (the metric's fallback), which the steady speed bar does not judge."""
+    secs = per_episode.get("steady_seconds")
+    if secs is None:  # a report written before the metric existed
+        return {}
+    steady = [r for r, t in zip(per_episode["speed_rmse_steady"], secs) if t > 0]
+    return {"steady_episodes": len(steady), "steady_seconds": sum(secs) / max(len(secs), 1),
+            "steady_only_rmse": sum(steady) / len(steady) if steady else None}
+
+
+def rmse_cell(r: dict) -> str:
+    """The steady RMSE as a table shows it: marked where it is the whole-episode fallback on some or all episodes."""
+    k, n = r.get("steady_episodes"), r.get("episodes")
+    if k is None or n is None or k == n:
+        return f"{r['steady_rmse']:.3f}"
+    if k == 0:
+        return f"{r['steady_rmse']:.3f} (no steady state: whole episode)"
+    return f"{r['steady_only_rmse']:.3f} (steady in {k} of {n} episodes, on those)"
+
+
 def row(rep: dict, profile: str) -> dict:
-    m = rep["profiles"][profile]["metrics"]
-    return {"collisions": rep["profiles"][profile]["collisions"], "min_gap": m["min_gap"]["min"],
+    p = rep["profiles"][profile]
+    m = p["metrics"]
+    return {"collisions": p["collisions"], "min_gap": m["min_gap"]["min"],
             "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
             "steady_rmse": m["speed_rmse_steady"]["mean"],
             "jerk": m["mean_abs_jerk"]["mean"], "return": m["return"]["mean"],
-            "intervention_rate": m["safety_clip_rate"]["mean"]}
+            "intervention_rate": m["safety_clip_rate"]["mean"], "episodes": len(p["per_episode"]["return"]),
+            **steadiness(p["per_episode"])}
 
 
 def no_layer_rows(rep: dict, profile: str) -> dict:
@@ -222,7 +247,8 @@ def no_layer_rows(rep: dict, profile: str) -> dict:
         out[label] = {"collisions": r["collisions"], "min_gap": m["min_gap"]["min"],
                       "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
                       "steady_rmse": m["speed_rmse_steady"]["mean"], "jerk": m["mean_abs_jerk"]["mean"],
-                      "return": m["return"]["mean"]}
+                      "return": m["return"]["mean"], "episodes": len(r["per_episode"]["return"]),
+                      **steadiness(r["per_episode"])}
     return out
 
 
@@ -343,11 +369,11 @@ def main(argv=None) -> dict:
     for name, r in results.items():
         p_ = r["policy"]
         lines.append(f"| {name} | policy + layer | {p_['collisions']} | {p_['min_gap']:.2f} | – | "
-                     f"{p_['max_head_gap']:.1f} | {p_['steady_rmse']:.3f} | {p_['jerk']:.4f} | {p_['return']:.0f} | "
+                     f"{p_['max_head_gap']:.1f} | {rmse_cell(p_)} | {p_['jerk']:.4f} | {p_['return']:.0f} | "
                      f"{p_['intervention_rate']:.3f} |")
         for label, q in r["policy_without_layer"].items():
             lines.append(f"| {name} | policy, no layer, start {label} | {q['collisions']} | {q['min_gap']:.2f} | "
-                         f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {q['steady_rmse']:.3f} | "
+                         f"{q['min_gap_after']:.2f} | {q['max_head_gap']:.1f} | {rmse_cell(q)} | "
                          f"{q['jerk']:.4f} | {q['return']:.0f} | – |")
         for spec in a.baselines:
             for key, label in ((spec, "no layer"), (f"{spec} + layer", "+ layer")):
@@ -356,7 +382,7 @@ def main(argv=None) -> dict:
                 i_ = r[key]
                 iv = f"{i_['intervention_rate']:.3f}" if key != spec else "–"
                 lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, {label} | {i_['collisions']} | "
-                             f"{i_['min_gap']:.2f} | {i_['min_gap_after']:.2f} | {i_['max_head_gap']:.1f} | {i_['steady_rmse']:.3f} | "
+                             f"{i_['min_gap']:.2f} | {i_['min_gap_after']:.2f} | {i_['max_head_gap']:.1f} | {rmse_cell(i_)} | "
                              f"{i_['jerk']:.4f} | {i_['return']:.0f} | {iv} |")
     by_speed = {name: r["jerk_by_speed"] for name, r in results.items() if "jerk_by_speed" in r}
     if by_speed:

@@ -56,7 +56,27 @@ def test_episode_metrics_on_a_known_trace():
     # steady: head still for >= 0.5 s; errors of 1 m/s on steps 80..99, steady samples from step 76 on
     n_steady = (torch.arange(100) >= 9).sum() - 5  # after warm-up, minus the 5 steps after the head's pulse
     assert m["speed_rmse_steady"][0].item() == pytest.approx((20 / n_steady.item()) ** 0.5, rel=1e-4)
+    assert m["steady_seconds"][0].item() == pytest.approx(0.1 * n_steady.item())  # how long they last
     assert not tr.valid[1, 60:].any()
+
+
+def test_an_episode_without_a_steady_state_says_its_steady_rmse_is_the_whole_episodes():
+    """A head that never holds its speed for ``settle`` seconds (here a sine) has no steady samples: the steady
+    RMSE falls back to the whole-episode RMSE, and ``steady_seconds`` = 0 says so; a head that holds gives the
+    time it held, less the settling."""
+    from mixed_traffic.evaluation.harness import follower_metrics
+
+    T, dt = 400, 0.1
+    t = torch.arange(T) * dt
+    sine = torch.stack([torch.sin(t / 3.0), torch.zeros(T)])  # row 0: never still; row 1: held from the start
+    v_head = 20.0 + torch.cumsum(sine, 1) * dt
+    v = v_head + torch.tensor([[0.5], [0.3]])
+    ones, after = torch.ones(2, T, dtype=torch.bool), t.expand(2, T) >= 10.0
+    m = follower_metrics(gap=torch.full((2, T), 20.0), head_gap=torch.full((2, T), 20.0), speed=v, head_speed=v_head,
+                         accel=sine, head_accel=sine, valid=ones, after=after, dt=dt, settle=8.0)
+    assert m["steady_seconds"].tolist() == pytest.approx([0.0, 30.0])  # 10-40 s after the warm-up, settled from 8 s
+    assert m["speed_rmse_steady"][0].item() == pytest.approx(m["speed_rmse"][0].item())  # the fallback
+    assert m["speed_rmse_steady"][1].item() == pytest.approx(0.3, rel=1e-5)
 
 
 def test_jerk_after_the_warm_up_leaves_the_start_transient_out():
@@ -226,6 +246,20 @@ def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path,
     # gaps over both starts and seeds; jerk against IDM's from the standard start, then with the layer; cacc only on
     # one seed: left out
     assert rows[-1] == "| sine_fast | 0 | 6.25–36.0 | +10.0..+30.0 % | 0.100 | +0.0 | +20.0..+50.0 % | 1.0 % |"
+    # a case whose head never holds its speed: the RMSE is the whole episode's, and the table says so; where some
+    # episodes hold, the figure is theirs alone
+    for name, k, want in (("none", 0, "| 1.500 (no steady state: whole episode) |"),
+                          ("some", 2, "| 0.200 (on the episodes with a steady state, 2 of 4) |")):
+        runs = []
+        for i in range(2):
+            g = _generalization_json(tmp_path / f"{name}{i}", jerk=0.1, gap=7.0)
+            data = json.loads((g / "generalization.json").read_text())
+            std = data["results"]["sine_fast"]["policy_without_layer"]["standard (73.4 m)"]
+            std.update(steady_rmse=1.5 if k == 0 else 1.1, episodes=4, steady_episodes=k,
+                       steady_only_rmse=0.2 if k else None)
+            (g / "generalization.json").write_text(json.dumps(data))
+            runs.append(g)
+        assert want in generalization_table(runs).splitlines()[-1]
     assert "cacc" in generalization_table([a]).splitlines()[2]
     c = _generalization_json(tmp_path / "s2", jerk=0.1, gap=7.0, seed=5000)
     d = _generalization_json(tmp_path / "s3", jerk=0.1, gap=7.0, v2v={"delay": 0.5, "loss": 0.0})
@@ -301,3 +335,48 @@ def test_evaluation_reports_the_speed_mode_95_override_rate(tmp_path):
     assert "speed-mode-95 override rate" in (tmp_path / "report.md").read_text()
     off, _ = evaluate(compose(["experiment=ring_ppo"] + SHORT_EVAL), always)
     assert not off["sumo_safety"] and off["overall"]["override_rate"] == 0.0
+
+
+def test_report_names_the_profiles_whose_steady_rmse_is_the_whole_episodes():
+    """report.md says which profiles' steady RMSE fell back to the whole episode's (no steady samples), and on
+    how many episodes; a profile steady in every episode is not named."""
+    from mixed_traffic.evaluation.report import markdown
+
+    def prof(secs):
+        return {"collisions": 0, "metrics": {}, "per_episode": {"steady_seconds": secs}}
+
+    rep = {"episodes_per_profile": 2, "eval_seed": 1000,
+           "profiles": {"random_steps": prof([12.0, 30.5]), "sine": prof([0.0, 0.0]), "stops": prof([0.0, 1.5])}}
+    md = markdown(rep, "t")
+    assert ("Steady RMSE where the head never held its speed long enough to settle: sine, every episode; stops, 1 of "
+            "2 episodes.") in md
+    assert "random_steps, " not in md
+    rep["profiles"] = {"random_steps": prof([12.0, 30.5])}
+    assert "never held" not in markdown(rep, "t")
+
+
+def test_the_rmse_bar_judges_only_profiles_with_a_steady_state():
+    """The acceptance's steady speed RMSE is taken over the profiles whose head held its speed long enough to settle
+    in some episode: a stop-and-go head whose holds are shorter than ``settle_seconds`` (its steady RMSE is the
+    whole episode's) is left out, as the sine is, and the same head with long holds counts."""
+    from mixed_traffic.evaluation.harness import evaluate
+    from mixed_traffic.evaluation.policies import classic_factory
+
+    def acceptance(hold):
+        times, speeds, t = [0.0], [10.0], 0.0
+        for dt, v in ((hold, 10.0), (5.0, 0.0), (3.0, 0.0), (5.0, 10.0), (hold, 10.0)):
+            t += dt
+            times.append(t)
+            speeds.append(v)
+        cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=reward", "eval.episodes=1",
+                       f"eval.episode_seconds={t}", "eval.warmup_seconds=0.0", "eval.settle_seconds=6.0",
+                       "eval.without_layer=false", "eval.profiles=[piecewise,random_steps]",
+                       f"+eval.profile_kwargs.piecewise={{times:{times},speeds:{speeds}}}"])
+        rep, _ = evaluate(cfg, policy_factory=classic_factory("idm"))
+        secs = rep["profiles"]["piecewise"]["per_episode"]["steady_seconds"][0]
+        return secs, rep["acceptance"]["steady_speed_rmse"], rep["profiles"]
+
+    secs, rmse, prof = acceptance(hold=4.0)  # never 6 s at one speed
+    assert secs == 0.0 and rmse == pytest.approx(prof["random_steps"]["metrics"]["speed_rmse_steady"]["mean"])
+    secs, rmse, prof = acceptance(hold=12.0)
+    assert secs > 0.0 and rmse == pytest.approx(max(p["metrics"]["speed_rmse_steady"]["mean"] for p in prof.values()))

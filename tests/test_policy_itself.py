@@ -760,3 +760,23 @@ def test_jerk_shares_by_speed_add_up_to_the_reports_mean_jerk():
     # episode 0: jerk 10 at 15 m/s, 20 at 19 m/s, 10 at 25 m/s over 5 steps; episode 1: 20 at 30 m/s, 10 at
     # 18 m/s over 4 steps (the 5-m/s step is invalid)
     assert shares == pytest.approx([(10 / 5 + 0) / 2, (20 / 5 + 10 / 4) / 2, (10 / 5 + 20 / 4) / 2])
+
+
+def test_generalization_marks_a_steady_rmse_that_is_the_whole_episodes(benchmark_script):
+    """benchmarks/ring_generalization.py: a case whose head holds its speed in no episode (stop_and_go_25's holds
+    are shorter than the settling time) reports the whole-episode RMSE as its steady RMSE; its rows say so, and a
+    case steady in some episodes gives the figure of those alone."""
+    mod = benchmark_script("ring_generalization")
+    per = {"speed_rmse_steady": [1.9, 1.8, 0.1, 0.3], "steady_seconds": [0.0, 0.0, 2.0, 3.0]}
+    s = mod.steadiness(per)
+    assert s["steady_episodes"] == 2 and s["steady_only_rmse"] == pytest.approx(0.2)
+    assert s["steady_seconds"] == pytest.approx(1.25)
+    row = {"steady_rmse": 1.025, "episodes": 4, **s}
+    assert mod.rmse_cell(row) == "0.200 (steady in 2 of 4 episodes, on those)"
+    none = {"steady_rmse": 1.85, "episodes": 4, **mod.steadiness({"speed_rmse_steady": [1.85] * 4,
+                                                                 "steady_seconds": [0.0] * 4})}
+    assert mod.rmse_cell(none) == "1.850 (no steady state: whole episode)"
+    assert mod.rmse_cell({"steady_rmse": 0.15, "episodes": 4, **mod.steadiness(
+        {"speed_rmse_steady": [0.15] * 4, "steady_seconds": [7.0] * 4})}) == "0.150"
+    assert mod.steadiness({"speed_rmse_steady": [0.1]}) == {}  # a report from before the metric: unmarked
+    assert mod.rmse_cell({"steady_rmse": 0.1}) == "0.100"

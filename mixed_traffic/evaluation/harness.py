@@ -15,6 +15,9 @@ Metrics per episode (all from the env key contract):
 - ``speed_rmse_steady``: the same on steady-state samples only: the head's speed has
   been constant (|a_head| < 0.05 m/s^2) for ``settle_seconds`` (profiles without such
   plateaus, e.g. a sine, fall back to ``speed_rmse``),
+- ``steady_seconds`` (s): how long those steady samples last in the episode; 0 where
+  ``speed_rmse_steady`` is the fallback, the whole-episode ``speed_rmse`` (a head that never holds
+  its speed for ``settle_seconds``, as a sine's or one that stops and drives off with short holds),
 - ``mean_abs_accel`` (m/s^2), ``mean_abs_jerk`` (m/s^3; ``mean_abs_jerk_after``: after the
   warm-up, as the gap bounds are judged), ``return`` (sum of the env's
   transformed reward), ``mean_J`` (DeeP-LCC stage cost), ``safety_clip_rate`` (the
@@ -54,7 +57,7 @@ from tqdm.auto import tqdm
 from mixed_traffic.training.builders import TRAINING_ONLY, env_kwargs, make_transformed_env, sensor_filter_model
 
 METRICS = ("collision", "min_gap", "min_gap_after", "max_head_gap", "time_outside", "time_outside_total", "speed_rmse",
-           "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after", "return", "mean_J", "safety_clip_rate",
+           "speed_rmse_steady", "steady_seconds", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after", "return", "mean_J", "safety_clip_rate",
            "mean_abs_delta", "override_rate", "length")
 
 
@@ -178,7 +181,7 @@ def follower_metrics(*, gap: torch.Tensor, head_gap: torch.Tensor, speed: torch.
                      dt: float, settle: float) -> dict[str, torch.Tensor]:
     """The first CAV's own per-episode metrics from ``[episodes, T]`` series (``valid``: the steps that count,
     ``after``: those after the warm-up): ``min_gap``, ``max_head_gap``, ``min_gap_after``, ``speed_rmse``,
-    ``speed_rmse_steady``, ``mean_abs_accel``, ``mean_abs_jerk`` and ``mean_abs_jerk_after``. Shared by
+    ``speed_rmse_steady``, ``steady_seconds``, ``mean_abs_accel``, ``mean_abs_jerk`` and ``mean_abs_jerk_after``. Shared by
     :func:`episode_metrics` and :func:`mixed_traffic.evaluation.replay.replay`."""
     inf = torch.tensor(float("inf"))
     err2 = (speed - head_speed).pow(2)
@@ -191,6 +194,7 @@ def follower_metrics(*, gap: torch.Tensor, head_gap: torch.Tensor, speed: torch.
         "min_gap_after": torch.where(after, gap, inf).min(1).values,
         "speed_rmse": rmse,
         "speed_rmse_steady": torch.where(steady.sum(1) > 0, _masked_mean(err2, steady).sqrt(), rmse),
+        "steady_seconds": steady.sum(1).to(speed.dtype) * dt,
         "mean_abs_accel": _masked_mean(accel.abs(), valid),
         "mean_abs_jerk": _masked_mean(jerk, jvalid),
         "mean_abs_jerk_after": _masked_mean(jerk, jvalid & after),
@@ -228,7 +232,8 @@ def episode_metrics(td: TensorDictBase, *, dt: float, s_min: float, s_max: float
     outside = (gap < s_min) | (head_gap > s_max)
     out["time_outside"] = (outside & after).sum(1).float() * dt
     out["time_outside_total"] = (outside & valid).sum(1).float() * dt
-    for key in ("speed_rmse", "speed_rmse_steady", "mean_abs_accel", "mean_abs_jerk", "mean_abs_jerk_after"):
+    for key in ("speed_rmse", "speed_rmse_steady", "steady_seconds", "mean_abs_accel", "mean_abs_jerk",
+                "mean_abs_jerk_after"):
         out[key] = f[key]
     out["return"] = (nxt.get("reward").squeeze(-1) * valid).sum(1)
     out["mean_J"] = _masked_mean(nxt.get(("traffic", "J")).squeeze(-1), valid)
@@ -427,8 +432,9 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     ov["episodes"] = int(cat["collision"].numel())
     report["overall"] = ov
     e = cfg.eval
-    # steady-state tracking is judged on the profiles with plateaus (where it is defined)
-    plateau = [p for p in profiles if p != "sine"]
+    # steady-state tracking is judged on the profiles with plateaus (where it is defined): not the sine, nor any
+    # profile whose head held its speed long enough to settle in no episode (its figure is the whole episode's)
+    plateau = [p for p in profiles if p != "sine" and max(report["profiles"][p]["per_episode"]["steady_seconds"]) > 0]
     rmse = max((report["profiles"][p]["metrics"]["speed_rmse_steady"]["mean"] for p in plateau), default=math.nan)
     report["acceptance"] = {
         "zero_collisions": ov["collisions"] == 0,

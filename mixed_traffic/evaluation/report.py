@@ -91,6 +91,10 @@ def markdown(report: dict, title: str) -> str:
     lines.append("|---|" + "---|" * len(cols))
     for prof, r in report["profiles"].items():
         lines.append(f"| {prof} | " + " | ".join(_cells(r, cols)) + " |")
+    unsteady = _unsteady(report["profiles"])
+    if unsteady:
+        lines += ["", "Steady RMSE where the head never held its speed long enough to settle: " + "; ".join(unsteady)
+                  + ". An episode without a steady state gives its whole-episode RMSE instead."]
     nl = report.get("without_layer")
     if nl:
         lines += ["", "Without the safety layer (the policy's own commands executed), per start spacing:", ""]
@@ -110,6 +114,19 @@ def markdown(report: dict, title: str) -> str:
     if report.get("plots"):
         lines += ["", "Plots: " + ", ".join(f"[{k}]({Path(v).name})" for k, v in report["plots"].items())]
     return "\n".join(lines) + "\n"
+
+
+def _unsteady(profiles: dict) -> list[str]:
+    """The profiles some of whose episodes had no steady samples (``steady_seconds`` = 0), with how many."""
+    out = []
+    for prof, r in profiles.items():
+        secs = (r.get("per_episode") or {}).get("steady_seconds")
+        if secs is None:  # a report from before the metric
+            continue
+        none = sum(s == 0 for s in secs)
+        if none:
+            out.append(f"{prof}, {none} of {len(secs)} episodes" if none < len(secs) else f"{prof}, every episode")
+    return out
 
 
 def _cells(r: dict, columns) -> list[str]:

@@ -184,12 +184,25 @@ def _span(values, fmt: str, unit: str = "") -> str:
     return f"{lo:{fmt}}{unit}" if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}..{hi:{fmt}}{unit}"
 
 
+def _steadiness(steady_in: list) -> str:
+    """How the steady RMSE cell qualifies its figures: nothing where every episode had a steady state (or it was not
+    recorded); else how many did, and that the figures are the whole-episode RMSE where none did."""
+    known = [x for x in steady_in if x is not None]
+    if not known or all(k == n for k, n in known):
+        return ""
+    if all(k == 0 for k, _ in known):
+        return " (no steady state: whole episode)"
+    counts = sorted(set(known))  # the same episodes in every run: one count, unless the runs differ
+    return " (on the episodes with a steady state, " + ", ".join(f"{k} of {n}" for k, n in counts) + ")"
+
+
 def generalization_table(dirs) -> str:
     """Per case, over several runs (seeds) of ``benchmarks/ring_generalization.py`` on the same episodes.
 
     Columns, the policy without its layer: the gaps after the warm-up over every start and run (smallest gap,
     largest head gap); collisions with and without the layer; its jerk and return against IDM-as-CAV's (the
-    ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs; its jerk
+    ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs (marked where
+    some or all episodes had no steady state, whose figure is then the whole-episode RMSE); its jerk
     against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against
     IDM-as-CAV's of every other baseline all the runs evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
     cases were evaluated on other episodes, over another V2V link or with other measurement noise.
@@ -226,6 +239,7 @@ def generalization_table(dirs) -> str:
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in cases:
         coll, gmin, gmax, jerk, rmse, ret, layered, layer = 0, math.inf, -math.inf, [], [], [], [], []
+        steady_in = []  # (episodes with a steady state, episodes) per run; None: not recorded
         other = {o: [] for o in others}
         for _, g in runs:
             x = g["results"][c]
@@ -239,13 +253,15 @@ def generalization_table(dirs) -> str:
             gmax = max(gmax, *(v["max_head_gap"] for v in free.values()))
             idm = x["idm"]
             jerk.append(100.0 * (free[std]["jerk"] / idm["jerk"] - 1.0))
-            rmse.append(free[std]["steady_rmse"])
+            k, n = free[std].get("steady_episodes"), free[std].get("episodes")
+            steady_in.append(None if k is None or n is None else (k, n))
+            rmse.append(free[std]["steady_only_rmse"] if k and k != n else free[std]["steady_rmse"])
             ret.append(free[std]["return"] - idm["return"])
             layered.append(100.0 * (x["policy"]["jerk"] / idm["jerk"] - 1.0))
             layer.append(100.0 * x["policy"]["intervention_rate"])
             for o in others:
                 other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
-        cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f"),
+        cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f") + _steadiness(steady_in),
                  _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %",
                  *(_span(v, "+.1f", " %") for v in other.values())]
         lines.append("| " + " | ".join(cells) + " |")
