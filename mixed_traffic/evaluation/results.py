@@ -4,6 +4,7 @@
     python -m mixed_traffic.evaluation.results --itself RUN... --baseline IDM_RUN   # with / without the layer
     python -m mixed_traffic.evaluation.results --paired RUN... --baseline IDM_RUN   # episode by episode
     python -m mixed_traffic.evaluation.results --generalization GEN_DIR...       # held-out cases over seeds
+    python -m mixed_traffic.evaluation.results --generalization GEN_DIR... --bars   # ... and the bars each misses
 
 Each directory holds ``eval/report.json`` (from ``mt-main``, ``mt-train eval.after_train=true``
 or ``mt-eval``) and, for trained policies, ``summary.json``; ``--itself`` and ``--paired`` also
@@ -196,7 +197,65 @@ def _steadiness(steady_in: list) -> str:
     return " (on the episodes with a steady state, " + ", ".join(f"{k} of {n}" for k, n in counts) + ")"
 
 
-def generalization_table(dirs) -> str:
+BARS = ("collisions", "gaps", "jerk", "steady RMSE", "return", "layer's share")
+
+
+GAP_TOLERANCE = 1e-3  # m: a stopping envelope that holds 5 m exactly ends 5e-5 m under it in the env's float32
+
+
+def _rmse_met(r: dict, rmse_bar: float) -> bool | None:
+    """Whether a row's steady RMSE meets ``rmse_bar``: None (not judged) where no episode had a steady state, the
+    figure of the episodes that had one where only some had."""
+    k, n = r.get("steady_episodes"), r.get("episodes")
+    if k == 0:
+        return None
+    return (r["steady_only_rmse"] if k and k != n else r["steady_rmse"]) <= rmse_bar + 1e-9
+
+
+def _gaps_met(r: dict, s_min: float, s_max: float) -> bool:
+    return r["min_gap_after"] >= s_min - GAP_TOLERANCE and r["max_head_gap"] <= s_max + GAP_TOLERANCE
+
+
+def _standard(x: dict) -> dict:
+    """The policy's row without its layer from the standard start, of one case of a generalization run."""
+    free = x["policy_without_layer"]
+    return free[next(k for k in free if k.startswith("standard"))]
+
+
+def case_bars(x: dict, *, s_min: float = 5.0, s_max: float = 40.0, rmse_bar: float = 0.2,
+              share_bar: float = 0.05) -> dict[str, bool | None]:
+    """Which of the ring's acceptance bars one run of ``benchmarks/ring_generalization.py`` meets on one case
+    (``x``: its ``results[case]``). The policy with its layer and without it from every start: no collision;
+    without it, the gaps after the warm-up within ``[s_min, s_max]`` (to :data:`GAP_TOLERANCE`); from the
+    standard start, with the layer and without it, a jerk at or below IDM-as-CAV's, a return at or above it and
+    a steady RMSE at most ``rmse_bar`` (None, not judged, where no episode had a steady state; on the episodes
+    that had one where only some had); the layer's share of steps at most ``share_bar``."""
+    free, pol, idm, std = x["policy_without_layer"], x["policy"], x["idm"], _standard(x)
+    return {"collisions": pol["collisions"] + sum(v["collisions"] for v in free.values()) == 0,
+            "gaps": all(_gaps_met(v, s_min, s_max) for v in free.values()),
+            "jerk": std["jerk"] <= idm["jerk"] and pol["jerk"] <= idm["jerk"],
+            "steady RMSE": _rmse_met(std, rmse_bar),
+            "return": std["return"] >= idm["return"] and pol["return"] >= idm["return"],
+            "layer's share": pol["intervention_rate"] <= share_bar + 1e-9}
+
+
+def row_bars(r: dict, idm: dict, *, s_min: float = 5.0, s_max: float = 40.0,
+             rmse_bar: float = 0.2) -> dict[str, bool | None]:
+    """The same bars for one controller's row of a case (``r``: a classical baseline's, or the policy's from one
+    start) against IDM-as-CAV's (``idm``), without a layer: what a reader holds the policy's against."""
+    return {"collisions": r["collisions"] == 0, "gaps": _gaps_met(r, s_min, s_max), "jerk": r["jerk"] <= idm["jerk"],
+            "steady RMSE": _rmse_met(r, rmse_bar), "return": r["return"] >= idm["return"], "layer's share": True}
+
+
+def _missed(per_run: list[dict]) -> str:
+    """The bars some run misses, each with on how many runs (``jerk 3 of 5``); ``–`` where every run meets every
+    bar it is judged on (a steady RMSE bar that does not apply is not a miss)."""
+    n = len(per_run)
+    out = [f"{bar} {m} of {n}" for bar in BARS if (m := sum(r[bar] is False for r in per_run))]
+    return "; ".join(out) if out else "–"
+
+
+def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> str:
     """Per case, over several runs (seeds) of ``benchmarks/ring_generalization.py`` on the same episodes.
 
     Columns, the policy without its layer: the gaps after the warm-up over every start and run (smallest gap,
@@ -204,8 +263,12 @@ def generalization_table(dirs) -> str:
     ``idm`` baseline) from the standard start, and its steady RMSE, each as the range over the runs (marked where
     some or all episodes had no steady state, whose figure is then the whole-episode RMSE); its jerk
     against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against
-    IDM-as-CAV's of every other baseline all the runs evaluated (e.g. ``cacc``, ``base``). Refuses runs whose
-    cases were evaluated on other episodes, over another V2V link or with other measurement noise.
+    IDM-as-CAV's of every other baseline the runs evaluated (e.g. ``cacc``, ``base``): a classical controller
+    drives the same episodes in every run, so one run that evaluated it on every case is enough, and its range is
+    over the runs that did. With ``bars``, a last column names the acceptance bars missed and on how many runs
+    (:func:`case_bars`, the steady RMSE at most ``rmse_bar``), and a line after the table counts the cases that
+    meet every bar on every run. Refuses runs whose cases were evaluated on other episodes, over another V2V
+    link or with other measurement noise.
     """
     runs = [(str(d), _generalization(d)) for d in dirs]
     for _, g in runs:  # written before the link was an option: the perfect link
@@ -222,12 +285,13 @@ def generalization_table(dirs) -> str:
     if not cases:
         raise ValueError("--generalization: the runs have no case in common")
     skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed")
-    # the other baselines every run evaluated (e.g. cacc on one seed only: left out)
-    others = [k for k in ref["results"][cases[0]] if k not in skip
-              and all(k in g["results"][c] for _, g in runs for c in cases)]
+    # the other baselines some run evaluated on every case (the same controller on the same episodes in every run)
+    others = list(dict.fromkeys(k for _, g in runs for k in g["results"][cases[0]] if k not in skip
+                                and all(k in g["results"][c] for c in cases)))
     link, noise = ref["v2v"], ref["sensor_noise"]
     head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's",
-            "with the layer: jerk − IDM's", "layer's share", *(f"{o}: jerk − IDM's" for o in others)]
+            "with the layer: jerk − IDM's", "layer's share", *(f"{o}: jerk − IDM's" for o in others),
+            *([f"bars missed (of {len(runs)} runs)"] if bars else [])]
     lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
              f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
                                  if link["delay"] or link["loss"] else "")
@@ -237,8 +301,10 @@ def generalization_table(dirs) -> str:
                 + (f", the layer's and envelope's margin {noise['margin']:g} standard deviations" if noise.get("margin") else "")
                 if noise["gap"] or noise["speed"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    clean = 0
     for c in cases:
         coll, gmin, gmax, jerk, rmse, ret, layered, layer = 0, math.inf, -math.inf, [], [], [], [], []
+        met = []
         steady_in = []  # (episodes with a steady state, episodes) per run; None: not recorded
         other = {o: [] for o in others}
         for _, g in runs:
@@ -260,11 +326,31 @@ def generalization_table(dirs) -> str:
             layered.append(100.0 * (x["policy"]["jerk"] / idm["jerk"] - 1.0))
             layer.append(100.0 * x["policy"]["intervention_rate"])
             for o in others:
-                other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
+                if o in x:
+                    other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
+            met.append(case_bars(x, rmse_bar=rmse_bar))
         cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f") + _steadiness(steady_in),
                  _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %",
                  *(_span(v, "+.1f", " %") for v in other.values())]
+        if bars:
+            cells.append(_missed(met))
+            clean += cells[-1] == "–"
         lines.append("| " + " | ".join(cells) + " |")
+    if bars:
+        lines += ["", f"{clean} of {len(cases)} cases meet every bar on every run (the steady RMSE at most "
+                      f"{rmse_bar:g} m/s where the head settles; the gaps within [5, 40] m after the warm-up)."]
+        first = runs[0][1]["results"]
+
+        def clean_on(rows) -> int:  # cases where a controller's rows meet every bar (rows: case -> (row, idm's))
+            return sum(not any(v is False for v in row_bars(r, i, rmse_bar=rmse_bar).values()) for r, i in rows)
+
+        counts = [f"the policy (the first run) {clean_on((_standard(first[c]), first[c]['idm']) for c in cases)}"]
+        for o in ["idm", *others]:
+            g = next((g["results"] for _, g in runs if all(o in g["results"][c] for c in cases)), None)
+            if g is not None:
+                counts.append(f"{o} {clean_on((g[c][o], g[c]['idm']) for c in cases)}")
+        lines.append(f"From the standard start, without a layer, on the same episodes, the controllers meet every bar "
+                     f"on: {', '.join(counts)} of the {len(cases)} cases.")
     return "\n".join(lines)
 
 
@@ -285,6 +371,9 @@ def main(argv=None) -> str:
                       help="runs are --out directories of benchmarks/ring_generalization.py (one per seed): per case, "
                            "the ranges over them")
     p.add_argument("--baseline", default=None, help="a report to compare with (e.g. IDM-as-CAV's run directory)")
+    p.add_argument("--bars", action="store_true",
+                   help="with --generalization: a column naming the acceptance bars each case misses, on how many runs")
+    p.add_argument("--rmse-bar", type=float, default=0.2, help="with --bars: the steady RMSE bar (m/s)")
     a = p.parse_args(argv)
     if a.paired and a.baseline is None:
         p.error("--paired needs --baseline DIR (the report the runs are compared with, episode by episode)")
@@ -294,7 +383,7 @@ def main(argv=None) -> str:
         out = paired_table(a.runs, a.baseline)
     elif a.generalization:
         try:
-            out = generalization_table(a.runs)
+            out = generalization_table(a.runs, bars=a.bars, rmse_bar=a.rmse_bar)
         except (ValueError, FileNotFoundError) as e:
             p.error(str(e))
     else:
