@@ -60,7 +60,8 @@ without a layer and, with ``--baselines-with-layer``, again behind the run's saf
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
 ``OUT/generalization.json`` and prints the table; ``--plot`` also draws episode 0 of each case
 (``OUT/<case>.png``); ``--jerk-by-speed 16 20`` also splits each controller's mean |jerk| by the CAV's
-speed (below 16, 16-20 and from 20 m/s), to show where in speed a controller's jerk is.
+speed (below 16, 16-20 and from 20 m/s), to show where in speed a controller's jerk is, and
+``--jerk-by-time 20`` by the time (the first 20 s, the warm-up that closes the long start, and the rest).
 
     python benchmarks/ring_generalization.py --checkpoint outputs/results/ring_lagrangian_ppo_seed0 \\
         --episodes 5 --seconds 200 --out outputs/results/ring_lagrangian_ppo_seed0/generalization
@@ -291,11 +292,16 @@ def main(argv=None) -> dict:
     p.add_argument("--jerk-by-speed", type=float, nargs="+", default=None, metavar="V",
                    help="also split each controller's mean |jerk| by the CAV's speed at these edges (m/s; e.g. 16 "
                         "20: below 16, 16-20, 20 and above), the shares adding up to the whole (results' jerk_by_speed)")
+    p.add_argument("--jerk-by-time", type=float, nargs="+", default=None, metavar="T",
+                   help="also split each controller's mean |jerk| by the time at these edges (s; e.g. 20: the first "
+                        "20 s and the rest), the shares adding up to the whole (results' jerk_by_time)")
     a = p.parse_args(argv)
     all_cases = cases(a.seconds)
     names = case_names(a.cases, all_cases)
-    if a.jerk_by_speed is not None and (any(v <= 0 for v in a.jerk_by_speed) or sorted(set(a.jerk_by_speed)) != a.jerk_by_speed):
-        raise SystemExit(f"--jerk-by-speed: {a.jerk_by_speed} is invalid; allowed: increasing speeds > 0 (m/s)")
+    for flag, edges, unit in (("--jerk-by-speed", a.jerk_by_speed, "speeds > 0 (m/s)"),
+                              ("--jerk-by-time", a.jerk_by_time, "times > 0 (s)")):
+        if edges is not None and (any(v <= 0 for v in edges) or sorted(set(edges)) != edges):
+            raise SystemExit(f"{flag}: {edges} is invalid; allowed: increasing {unit}")
 
     import torch
     from omegaconf import open_dict
@@ -346,12 +352,13 @@ def main(argv=None) -> dict:
                 with open_dict(base_cfg):
                     base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
                 results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
-        if a.jerk_by_speed is not None:
-            from mixed_traffic.evaluation.harness import eval_scenario, jerk_shares_by
+        for key, cuts, by in (("jerk_by_speed", a.jerk_by_speed, "cav_speed"), ("jerk_by_time", a.jerk_by_time, "time")):
+            if cuts is not None:
+                from mixed_traffic.evaluation.harness import eval_scenario, jerk_shares_by
 
-            dt, edges = eval_scenario(cfg, prof).dt, [0.0, *a.jerk_by_speed, math.inf]
-            results[name]["jerk_by_speed"] = {"edges": edges, **{
-                label: jerk_shares_by(t.cav_accel, t.valid, dt, t.cav_speed, edges) for label, t in plotted.items()}}
+                dt, edges = eval_scenario(cfg, prof).dt, [0.0, *cuts, math.inf]
+                results[name][key] = {"edges": edges, **{
+                    label: jerk_shares_by(t.cav_accel, t.valid, dt, getattr(t, by), edges) for label, t in plotted.items()}}
         print(name, json.dumps(results[name]["policy"]), flush=True)
         if a.plot:
             Path(a.out).mkdir(parents=True, exist_ok=True)
@@ -384,13 +391,15 @@ def main(argv=None) -> dict:
                 lines.append(f"| {name} | {spec.replace('idm', 'IDM')}, {label} | {i_['collisions']} | "
                              f"{i_['min_gap']:.2f} | {i_['min_gap_after']:.2f} | {i_['max_head_gap']:.1f} | {rmse_cell(i_)} | "
                              f"{i_['jerk']:.4f} | {i_['return']:.0f} | {iv} |")
-    by_speed = {name: r["jerk_by_speed"] for name, r in results.items() if "jerk_by_speed" in r}
-    if by_speed:
-        edges = next(iter(by_speed.values()))["edges"]
-        bins = [f"{lo:g}-{hi:g} m/s" if hi != math.inf else f"{lo:g}+ m/s" for lo, hi in zip(edges[:-1], edges[1:])]
-        lines += ["", "Mean |jerk| (m/s3) by the CAV's speed (the shares add up to the whole episode's):", "",
+    for key, what, unit in (("jerk_by_speed", "the CAV's speed", "m/s"), ("jerk_by_time", "the time", "s")):
+        split = {name: r[key] for name, r in results.items() if key in r}
+        if not split:
+            continue
+        edges = next(iter(split.values()))["edges"]
+        bins = [f"{lo:g}-{hi:g} {unit}" if hi != math.inf else f"{lo:g}+ {unit}" for lo, hi in zip(edges[:-1], edges[1:])]
+        lines += ["", f"Mean |jerk| (m/s3) by {what} (the shares add up to the whole episode's):", "",
                   "| case | controller | " + " | ".join(bins) + " |", "|" + "---|" * (2 + len(bins))]
-        for name, r in by_speed.items():
+        for name, r in split.items():
             lines += [f"| {name} | {label} | " + " | ".join(f"{x:.4f}" for x in v) + " |"
                       for label, v in r.items() if label != "edges"]
     md = "\n".join(lines) + "\n"

@@ -404,8 +404,12 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     mod = benchmark_script("ring_generalization")
     out = tmp_path / "gen"
     res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
-                    "--baselines", "idm", "--baselines-with-layer", "--plot", "--out", str(out)])
+                    "--baselines", "idm", "--baselines-with-layer", "--plot", "--jerk-by-time", "5", "--out", str(out)])
     rows = res["fast_steps"]
+    # --jerk-by-time: the first 5 s and the rest, adding up to each controller's whole-episode jerk
+    by_time = rows["jerk_by_time"]
+    assert by_time["edges"][:2] == [0.0, 5.0] and sum(by_time["idm, no layer"]) == pytest.approx(rows["idm"]["jerk"], rel=1e-4)
+    assert "Mean |jerk| (m/s3) by the time" in (out / "generalization.md").read_text()
     assert rows["seconds"] == 20.0  # each case records its episode length (eudc_highway runs 330 s)
     assert rows["idm"]["intervention_rate"] == 0.0 and rows["idm + layer"]["intervention_rate"] > 0.0
     assert rows["idm + layer"]["max_head_gap"] < rows["idm"]["max_head_gap"]
@@ -725,6 +729,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6 and len(mod.GROUPS["fresh_3"]) == 5
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
+    with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
+        mod.main(["--checkpoint", "none", "--jerk-by-time", "0", "--out", "none"])
 
     def head_speeds(name: str, seed: int) -> torch.Tensor:  # [time, 4 episodes], every 0.1 s of the episode
         case = all_cases[name]

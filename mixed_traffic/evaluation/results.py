@@ -284,7 +284,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
     if not cases:
         raise ValueError("--generalization: the runs have no case in common")
-    skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed")
+    skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed", "jerk_by_time")
     # the other baselines some run evaluated on every case (the same controller on the same episodes in every run)
     others = list(dict.fromkeys(k for _, g in runs for k in g["results"][cases[0]] if k not in skip
                                 and all(k in g["results"][c] for c in cases)))
