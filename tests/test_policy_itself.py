@@ -389,18 +389,24 @@ def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path,
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def _tiny_scratch_run(run):
+    """A ring run trained for 32 frames (experiment=ring_lagrangian_ppo_scratch): a checkpoint the benchmark
+    scripts load, in seconds."""
+    from mixed_traffic.training import train
+
+    train(compose(["experiment=ring_lagrangian_ppo_scratch", "trainer.total_frames=32", "trainer.num_envs=8",
+                   "trainer.rollout_len=4", "trainer.epochs=1", "trainer.minibatch_size=16",
+                   "trainer.progress=false", "env.episode_seconds=1.0"]), out_dir=run)
+    return run
+
+
 def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path, benchmark_script):
     """benchmarks/ring_generalization.py --baselines-with-layer: each baseline runs again behind the
     trained run's safety layer on the same episodes; the layer's work shows in its row (IDM-as-CAV
     starts 73.4 m behind a 20-28 m/s head, beyond s_max) and not in the layer-free one."""
     import json
 
-    from mixed_traffic.training import train
-
-    run = tmp_path / "run"
-    train(compose(["experiment=ring_lagrangian_ppo_scratch", "trainer.total_frames=32", "trainer.num_envs=8",
-                   "trainer.rollout_len=4", "trainer.epochs=1", "trainer.minibatch_size=16",
-                   "trainer.progress=false", "env.episode_seconds=1.0"]), out_dir=run)
+    run = _tiny_scratch_run(tmp_path / "run")
     mod = benchmark_script("ring_generalization")
     out = tmp_path / "gen"
     res = mod.main(["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps",
@@ -786,3 +792,30 @@ def test_generalization_marks_a_steady_rmse_that_is_the_whole_episodes(benchmark
         {"speed_rmse_steady": [0.15] * 4, "steady_seconds": [7.0] * 4})}) == "0.150"
     assert mod.steadiness({"speed_rmse_steady": [0.1]}) == {}  # a report from before the metric: unmarked
     assert mod.rmse_cell({"steady_rmse": 0.1}) == "0.100"
+
+
+def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, benchmark_script):
+    """benchmarks/ring_scorecard.py: ring_generalization.py per run and group (the classical controllers beside the
+    first run only), the bars table of each group and the count of clean cases; a group already evaluated is not
+    run again, and bad groups or runs fail before anything runs."""
+    run = _tiny_scratch_run(tmp_path / "run")
+    mod = benchmark_script("ring_scorecard")
+    out = tmp_path / "sc"
+    args = ["--runs", str(run), str(run), "--groups", "fresh_3", "--episodes", "1", "--seconds", "20",
+            "--classical", "cacc", "--out", str(out)]
+    md = mod.main(args)
+    assert (out / "scorecard.md").read_text() == md
+    assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 20 s a case")
+    assert "## fresh_3 (evaluation seed 8000)" in md and "| bars missed (of 2 runs) |" in md
+    assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table
+    import json
+    assert "cacc" in json.loads((out / "run0" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
+    assert "cacc" not in json.loads((out / "run1" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
+    stamp = (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns
+    mod.main(args)  # already there: not run again
+    assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit, match=r"--groups: \['fresh_9'\] are not groups"):
+        mod.main(["--runs", str(run), "--groups", "fresh_9", "--out", str(tmp_path / "bad")])
+    with pytest.raises(SystemExit, match=r"--runs: .* do not exist"):
+        mod.main(["--runs", str(tmp_path / "none"), "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()

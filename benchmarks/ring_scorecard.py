@@ -1,0 +1,99 @@
+"""The scorecard of trained ring policies on every case they never trained on, in one command.
+
+Runs ``ring_generalization.py`` for each run (one per seed) on each group of cases at the group's own
+evaluation seed (held_out 2000, fresh 5000, fresh_2 7000, fresh_3 8000), IDM-as-CAV beside every run and
+the classical controllers of ``--classical`` beside the first run only (they do not depend on the policy:
+the same episodes in every run). Then prints and writes ``OUT/scorecard.md``: per group, the table of
+``python -m mixed_traffic.evaluation.results --generalization ... --bars`` (which acceptance bars each case
+misses and on how many runs, and what each controller meets alone), and a line counting the clean cases over
+all groups. A group whose output is already there is not run again (``--rerun`` to run it anyway)::
+
+    python benchmarks/ring_scorecard.py --runs outputs/results/ring_safety_net_seed{0,1,2,3,4} --jobs 2 \\
+        --out outputs/results/scorecard
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000}
+CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best classical; CACC
+
+
+def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical) -> list[tuple]:
+    """``(output directory, ring_generalization.py arguments)`` of every run and group."""
+    todo = []
+    for i, run in enumerate(runs):
+        for g in groups:
+            d = out / f"run{i}" / g
+            args = ["--checkpoint", run, "--episodes", str(episodes), "--seconds", str(seconds), "--seed",
+                    str(SEEDS[g]), "--cases", g, "--baselines", "idm", *(classical if i == 0 else ()), "--out", str(d)]
+            todo.append((d, args))
+    return todo
+
+
+def main(argv=None) -> str:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--runs", nargs="+", required=True, help="run directories (one per seed) or final.pt files")
+    p.add_argument("--groups", nargs="+", default=list(SEEDS), help=f"groups of cases (default: all of {list(SEEDS)})")
+    p.add_argument("--episodes", type=int, default=4)
+    p.add_argument("--seconds", type=float, default=200.0)
+    p.add_argument("--classical", nargs="*", default=list(CLASSICAL),
+                   help="classical controllers run beside the first run (default: IDM_cav (b = 2) and CACC)")
+    p.add_argument("--jobs", type=int, default=1, help="groups evaluated at once (processes)")
+    p.add_argument("--rerun", action="store_true", help="run every group again, even where its output is there")
+    p.add_argument("--rmse-bar", type=float, default=0.2)
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+    unknown = sorted(set(a.groups) - set(SEEDS))
+    if unknown:
+        raise SystemExit(f"--groups: {unknown} are not groups; allowed: {list(SEEDS)}")
+    missing = [r for r in a.runs if not Path(r).exists()]
+    if missing:
+        raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
+    if a.jobs < 1:
+        raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
+    from mixed_traffic.evaluation.results import generalization_table
+
+    out = Path(a.out)
+    todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical)
+    script = str(Path(__file__).with_name("ring_generalization.py"))
+
+    def run(job):
+        d, args = job
+        if (d / "generalization.json").is_file() and not a.rerun:
+            return d, 0
+        d.mkdir(parents=True, exist_ok=True)
+        with open(d / "log.txt", "w") as log:
+            rc = subprocess.run([sys.executable, script, *args], stdout=log, stderr=subprocess.STDOUT).returncode
+        return d, rc
+
+    with ThreadPoolExecutor(max_workers=a.jobs) as pool:
+        failed = [str(d) for d, rc in pool.map(run, todo) if rc != 0]
+    if failed:
+        raise SystemExit(f"ring_generalization.py failed for {failed}; see log.txt there")
+    parts, clean, total = [], 0, 0
+    for g in a.groups:
+        table = generalization_table([out / f"run{i}" / g for i in range(len(a.runs))], bars=True,
+                                     rmse_bar=a.rmse_bar)
+        count = next(line for line in table.splitlines() if "cases meet every bar on every run" in line)
+        clean += int(count.split()[0])
+        total += int(count.split()[2])
+        parts += [f"## {g} (evaluation seed {SEEDS[g]})", "", table, ""]
+    head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
+            f"{clean} of {total} cases meet every bar on every run.", ""]
+    md = "\n".join(head + parts)
+    (out / "scorecard.md").write_text(md)
+    print(md)
+    return md
+
+
+if __name__ == "__main__":
+    main()
