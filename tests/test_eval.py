@@ -413,3 +413,8 @@ def test_generalization_bars_name_what_each_case_misses_and_on_how_many_runs(tmp
                        "on: the policy (the first run) 1, idm 1, cacc 0 of the 1 cases.")
     assert main(["--generalization", str(a), "--bars"]).splitlines()[4].endswith("| – |")
     assert "bars missed" not in main(["--generalization", str(a)])
+    for bad, said in ((["--bars", str(a)], "--bars needs --generalization"),
+                      (["--generalization", str(a), "--bars", "--rmse-bar", "0"], "--rmse-bar 0.0 is invalid")):
+        with pytest.raises(SystemExit):
+            main(bad)
+        assert said in capsys.readouterr().err

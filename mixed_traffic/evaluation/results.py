@@ -198,18 +198,20 @@ def _steadiness(steady_in: list) -> str:
 
 
 BARS = ("collisions", "gaps", "jerk", "steady RMSE", "return", "layer's share")
-
-
 GAP_TOLERANCE = 1e-3  # m: a stopping envelope that holds 5 m exactly ends 5e-5 m under it in the env's float32
 
 
-def _rmse_met(r: dict, rmse_bar: float) -> bool | None:
-    """Whether a row's steady RMSE meets ``rmse_bar``: None (not judged) where no episode had a steady state, the
-    figure of the episodes that had one where only some had."""
+def _steady_rmse(r: dict) -> float:
+    """A row's steady RMSE as the tables give it: the mean over the episodes with a steady state where only some
+    had one, else the row's own (the whole-episode RMSE where none had)."""
     k, n = r.get("steady_episodes"), r.get("episodes")
-    if k == 0:
-        return None
-    return (r["steady_only_rmse"] if k and k != n else r["steady_rmse"]) <= rmse_bar + 1e-9
+    return r["steady_only_rmse"] if k and k != n else r["steady_rmse"]
+
+
+def _rmse_met(r: dict, rmse_bar: float) -> bool | None:
+    """Whether a row's steady RMSE (:func:`_steady_rmse`) meets ``rmse_bar``; None (not judged) where no episode
+    had a steady state."""
+    return None if r.get("steady_episodes") == 0 else _steady_rmse(r) <= rmse_bar + 1e-9
 
 
 def _gaps_met(r: dict, s_min: float, s_max: float) -> bool:
@@ -321,7 +323,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
             jerk.append(100.0 * (free[std]["jerk"] / idm["jerk"] - 1.0))
             k, n = free[std].get("steady_episodes"), free[std].get("episodes")
             steady_in.append(None if k is None or n is None else (k, n))
-            rmse.append(free[std]["steady_only_rmse"] if k and k != n else free[std]["steady_rmse"])
+            rmse.append(_steady_rmse(free[std]))
             ret.append(free[std]["return"] - idm["return"])
             layered.append(100.0 * (x["policy"]["jerk"] / idm["jerk"] - 1.0))
             layer.append(100.0 * x["policy"]["intervention_rate"])
@@ -377,6 +379,10 @@ def main(argv=None) -> str:
     a = p.parse_args(argv)
     if a.paired and a.baseline is None:
         p.error("--paired needs --baseline DIR (the report the runs are compared with, episode by episode)")
+    if a.bars and not a.generalization:
+        p.error("--bars needs --generalization (the bars are judged on ring_generalization.py's cases)")
+    if not a.rmse_bar > 0:
+        p.error(f"--rmse-bar {a.rmse_bar} is invalid; allowed: > 0 (m/s)")
     if a.itself:
         out = itself_table(a.runs, a.baseline)
     elif a.paired:
