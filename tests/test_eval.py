@@ -418,3 +418,18 @@ def test_generalization_bars_name_what_each_case_misses_and_on_how_many_runs(tmp
         with pytest.raises(SystemExit):
             main(bad)
         assert said in capsys.readouterr().err
+
+
+def test_the_acceptance_judges_a_partly_steady_profile_on_its_steady_episodes():
+    """A profile whose head settles in some episodes only: its steady RMSE for the acceptance is the mean over
+    those episodes, not over figures of which some are whole-episode RMSEs; all steady: the report's mean; none:
+    not judged."""
+    from mixed_traffic.evaluation.harness import steady_rmse_mean
+
+    def prof(rmse, secs):
+        return {"metrics": {"speed_rmse_steady": {"mean": sum(rmse) / len(rmse)}},
+                "per_episode": {"speed_rmse_steady": rmse, "steady_seconds": secs}}
+
+    assert steady_rmse_mean(prof([0.1, 1.9, 0.3], [4.0, 0.0, 2.0])) == pytest.approx(0.2)
+    assert steady_rmse_mean(prof([0.1, 0.3], [4.0, 2.0])) == pytest.approx(0.2)
+    assert steady_rmse_mean(prof([1.9, 1.7], [0.0, 0.0])) is None

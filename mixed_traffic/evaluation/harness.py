@@ -372,6 +372,18 @@ def aggregate(values: torch.Tensor) -> dict:
             "min": float(finite.min()), "max": float(finite.max())}
 
 
+def steady_rmse_mean(profile_report: dict) -> float | None:
+    """A profile's steady RMSE as the acceptance judges it: the mean over its episodes with steady samples
+    (``steady_seconds`` > 0; all of them: the report's mean itself), None where no episode had any (every
+    episode's figure is then its whole-episode RMSE, which the steady bar does not judge)."""
+    per = profile_report["per_episode"]
+    secs = per["steady_seconds"]
+    if all(t > 0 for t in secs):
+        return profile_report["metrics"]["speed_rmse_steady"]["mean"]
+    steady = [r for r, t in zip(per["speed_rmse_steady"], secs) if t > 0]
+    return sum(steady) / len(steady) if steady else None
+
+
 def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None, episodes: int | None = None,
              seed: int | None = None, runner=None) -> tuple[dict, dict[str, Trace]]:
     """Evaluate over ``profiles``; returns the report dict and the traces (for plots).
@@ -434,8 +446,8 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     e = cfg.eval
     # steady-state tracking is judged on the profiles with plateaus (where it is defined): not the sine, nor any
     # profile whose head held its speed long enough to settle in no episode (its figure is the whole episode's)
-    plateau = [p for p in profiles if p != "sine" and max(report["profiles"][p]["per_episode"]["steady_seconds"]) > 0]
-    rmse = max((report["profiles"][p]["metrics"]["speed_rmse_steady"]["mean"] for p in plateau), default=math.nan)
+    steady = {p: steady_rmse_mean(report["profiles"][p]) for p in profiles if p != "sine"}
+    rmse = max((r for r in steady.values() if r is not None), default=math.nan)
     report["acceptance"] = {
         "zero_collisions": ov["collisions"] == 0,
         "gap_within_bounds": bool(ov["min_gap"] >= e.s_min - 1e-6 and ov["max_head_gap"] <= e.s_max + 1e-6),
