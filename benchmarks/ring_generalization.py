@@ -212,10 +212,12 @@ def steadiness(per_episode: dict) -> dict:
     ``steady_seconds``: their mean length over all episodes (s); ``steady_only_rmse``: the mean steady RMSE of
     the episodes that have them (None if none has). An episode without steady samples reports the whole-episode
     RMSE as its steady RMSE (the metric's fallback), which the steady speed bar does not judge."""
+    from mixed_traffic.evaluation.harness import steady_only
+
     secs = per_episode.get("steady_seconds")
     if secs is None:  # a report written before the metric existed
         return {}
-    steady = [r for r, t in zip(per_episode["speed_rmse_steady"], secs) if t > 0]
+    steady = steady_only(per_episode)
     return {"steady_episodes": len(steady), "steady_seconds": sum(secs) / max(len(secs), 1),
             "steady_only_rmse": sum(steady) / len(steady) if steady else None}
 

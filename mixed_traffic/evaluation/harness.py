@@ -372,15 +372,19 @@ def aggregate(values: torch.Tensor) -> dict:
             "min": float(finite.min()), "max": float(finite.max())}
 
 
+def steady_only(per_episode: dict) -> list[float]:
+    """The steady RMSEs of the episodes that had steady samples (``steady_seconds`` > 0), from a report's
+    ``per_episode``: the others' figures are their whole-episode RMSE, which the steady bar does not judge."""
+    return [r for r, t in zip(per_episode["speed_rmse_steady"], per_episode["steady_seconds"]) if t > 0]
+
+
 def steady_rmse_mean(profile_report: dict) -> float | None:
     """A profile's steady RMSE as the acceptance judges it: the mean over its episodes with steady samples
-    (``steady_seconds`` > 0; all of them: the report's mean itself), None where no episode had any (every
-    episode's figure is then its whole-episode RMSE, which the steady bar does not judge)."""
+    (:func:`steady_only`; all of them: the report's mean itself), None where no episode had any."""
     per = profile_report["per_episode"]
-    secs = per["steady_seconds"]
-    if all(t > 0 for t in secs):
+    if all(t > 0 for t in per["steady_seconds"]):
         return profile_report["metrics"]["speed_rmse_steady"]["mean"]
-    steady = [r for r, t in zip(per["speed_rmse_steady"], secs) if t > 0]
+    steady = steady_only(per)
     return sum(steady) / len(steady) if steady else None
 
 

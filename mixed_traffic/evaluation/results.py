@@ -314,17 +314,15 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
             if "idm" not in x:
                 raise ValueError(f"--generalization: case {c!r} has no idm baseline; allowed: runs made with "
                                  "--baselines idm (IDM-as-CAV, the reference of the bars)")
-            free = x["policy_without_layer"]
-            std = next(k for k in free if k.startswith("standard"))
+            free, std, idm = x["policy_without_layer"], _standard(x), x["idm"]
             coll += x["policy"]["collisions"] + sum(v["collisions"] for v in free.values())
             gmin = min(gmin, *(v["min_gap_after"] for v in free.values()))
             gmax = max(gmax, *(v["max_head_gap"] for v in free.values()))
-            idm = x["idm"]
-            jerk.append(100.0 * (free[std]["jerk"] / idm["jerk"] - 1.0))
-            k, n = free[std].get("steady_episodes"), free[std].get("episodes")
+            jerk.append(100.0 * (std["jerk"] / idm["jerk"] - 1.0))
+            k, n = std.get("steady_episodes"), std.get("episodes")
             steady_in.append(None if k is None or n is None else (k, n))
-            rmse.append(_steady_rmse(free[std]))
-            ret.append(free[std]["return"] - idm["return"])
+            rmse.append(_steady_rmse(std))
+            ret.append(std["return"] - idm["return"])
             layered.append(100.0 * (x["policy"]["jerk"] / idm["jerk"] - 1.0))
             layer.append(100.0 * x["policy"]["intervention_rate"])
             for o in others:
