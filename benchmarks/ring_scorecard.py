@@ -60,7 +60,7 @@ def main(argv=None) -> str:
         raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
     if a.jobs < 1:
         raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
-    from mixed_traffic.evaluation.results import generalization_table
+    from mixed_traffic.evaluation.results import clean_cases, generalization_table
 
     out = Path(a.out)
     todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical)
@@ -81,12 +81,10 @@ def main(argv=None) -> str:
         raise SystemExit(f"ring_generalization.py failed for {failed}; see log.txt there")
     parts, clean, total = [], 0, 0
     for g in a.groups:
-        table = generalization_table([out / f"run{i}" / g for i in range(len(a.runs))], bars=True,
-                                     rmse_bar=a.rmse_bar)
-        count = next(line for line in table.splitlines() if "cases meet every bar on every run" in line)
-        clean += int(count.split()[0])
-        total += int(count.split()[2])
-        parts += [f"## {g} (evaluation seed {SEEDS[g]})", "", table, ""]
+        dirs = [out / f"run{i}" / g for i in range(len(a.runs))]
+        here, n = clean_cases(dirs, rmse_bar=a.rmse_bar)
+        clean, total = clean + here, total + n
+        parts += [f"## {g} (evaluation seed {SEEDS[g]})", "", generalization_table(dirs, bars=True, rmse_bar=a.rmse_bar), ""]
     head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
             f"{clean} of {total} cases meet every bar on every run.", ""]
     md = "\n".join(head + parts)

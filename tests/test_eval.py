@@ -412,6 +412,8 @@ def test_generalization_bars_name_what_each_case_misses_and_on_how_many_runs(tmp
     assert out[-1] == ("From the standard start, without a layer, on the same episodes, the controllers meet every bar "
                        "on: the policy (the first run) 1, idm 1, cacc 0 of the 1 cases.")
     assert main(["--generalization", str(a), "--bars"]).splitlines()[4].endswith("| – |")
+    from mixed_traffic.evaluation.results import clean_cases
+    assert clean_cases([a, b]) == (0, 1) and clean_cases([a]) == (1, 1)  # the count the table ends with
     assert "bars missed" not in main(["--generalization", str(a)])
     for bad, said in ((["--bars", str(a)], "--bars needs --generalization"),
                       (["--generalization", str(a), "--bars", "--rmse-bar", "0"], "--rmse-bar 0.0 is invalid")):

@@ -257,6 +257,35 @@ def _missed(per_run: list[dict]) -> str:
     return "; ".join(out) if out else "–"
 
 
+def _load_runs(dirs) -> tuple[list[tuple[str, dict]], list[str]]:
+    """``([(dir, generalization.json)], cases in common)`` of runs of ``benchmarks/ring_generalization.py``;
+    refuses runs evaluated on other episodes, over another V2V link or with other measurement noise."""
+    runs = [(str(d), _generalization(d)) for d in dirs]
+    for _, g in runs:  # written before the link was an option: the perfect link
+        g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
+        g.setdefault("sensor_noise", {"gap": 0.0, "speed": 0.0, "tau": 0.0, "margin": 0.0})  # and exact measurements
+        g["sensor_noise"].setdefault("filter", False)  # and no filter
+    ref_dir, ref = runs[0]
+    for d, g in runs[1:]:
+        for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise"):
+            if g.get(key) != ref.get(key):
+                raise ValueError(f"--generalization: {key} {g.get(key)!r} of {d!r} differs from {ref.get(key)!r} of "
+                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes, link and noise")
+    cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
+    if not cases:
+        raise ValueError("--generalization: the runs have no case in common")
+    return runs, cases
+
+
+def clean_cases(dirs, *, rmse_bar: float = 0.2) -> tuple[int, int]:
+    """``(cases that meet every bar on every run, cases)`` of runs of ``benchmarks/ring_generalization.py``
+    (:func:`case_bars`): the count the ``bars`` table of :func:`generalization_table` ends with."""
+    runs, cases = _load_runs(dirs)
+    clean = sum(all(v is not False for _, g in runs for v in case_bars(g["results"][c], rmse_bar=rmse_bar).values())
+                for c in cases)
+    return clean, len(cases)
+
+
 def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> str:
     """Per case, over several runs (seeds) of ``benchmarks/ring_generalization.py`` on the same episodes.
 
@@ -272,20 +301,8 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     meet every bar on every run. Refuses runs whose cases were evaluated on other episodes, over another V2V
     link or with other measurement noise.
     """
-    runs = [(str(d), _generalization(d)) for d in dirs]
-    for _, g in runs:  # written before the link was an option: the perfect link
-        g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
-        g.setdefault("sensor_noise", {"gap": 0.0, "speed": 0.0, "tau": 0.0, "margin": 0.0})  # and exact measurements
-        g["sensor_noise"].setdefault("filter", False)  # and no filter
-    ref_dir, ref = runs[0]
-    for d, g in runs[1:]:
-        for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise"):
-            if g.get(key) != ref.get(key):
-                raise ValueError(f"--generalization: {key} {g.get(key)!r} of {d!r} differs from {ref.get(key)!r} of "
-                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes, link and noise")
-    cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
-    if not cases:
-        raise ValueError("--generalization: the runs have no case in common")
+    runs, cases = _load_runs(dirs)
+    ref = runs[0][1]
     skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed", "jerk_by_time")
     # the other baselines some run evaluated on every case (the same controller on the same episodes in every run)
     others = list(dict.fromkeys(k for _, g in runs for k in g["results"][cases[0]] if k not in skip
