@@ -355,6 +355,31 @@ def test_report_names_the_profiles_whose_steady_rmse_is_the_whole_episodes():
     assert "never held" not in markdown(rep, "t")
 
 
+def test_report_gives_the_steady_rmse_of_the_episodes_that_settle():
+    """report.json's entry of a profile carries the steady RMSE over the episodes that settle
+    (``steady_only_rmse``) beside ``metrics.speed_rmse_steady``, which averages in the others' whole-episode
+    fallback; report.md's table gives that figure, marked, and marks a whole-episode one."""
+    from mixed_traffic.evaluation.harness import METRICS, profile_entry
+    from mixed_traffic.evaluation.report import markdown
+
+    def entry(rmse, secs):
+        m = {k: torch.zeros(len(rmse)) for k in METRICS}
+        m["speed_rmse_steady"], m["steady_seconds"] = torch.tensor(rmse), torch.tensor(secs)
+        return profile_entry(m)
+
+    part, none, full = entry([1.9, 0.1, 0.3], [0.0, 4.0, 2.0]), entry([1.9, 1.7], [0.0, 0.0]), entry([0.1, 0.2], [3.0, 4.0])
+    assert part["metrics"]["speed_rmse_steady"]["mean"] == pytest.approx(2.3 / 3)  # the mixed mean, as before
+    assert part["steady_episodes"] == 2 and part["steady_only_rmse"] == pytest.approx(0.2)
+    assert none["steady_episodes"] == 0 and none["steady_only_rmse"] is None
+    assert full["steady_only_rmse"] == pytest.approx(full["metrics"]["speed_rmse_steady"]["mean"])
+    md = markdown({"episodes_per_profile": 3, "eval_seed": 1000, "profiles": {"stops": part, "sine": none,
+                                                                               "steps": full}}, "t")
+    rows = {line.split(" | ")[0]: line for line in md.splitlines() if line.startswith("| ")}
+    assert "| 0.200 (steady in 2 of 3 episodes, on those) |" in rows["| stops"]
+    assert "| 1.800 (no steady state: whole episode) |" in rows["| sine"]
+    assert "| 0.150 ± 0.050 |" in rows["| steps"]
+
+
 def test_the_rmse_bar_judges_only_profiles_with_a_steady_state():
     """The acceptance's steady speed RMSE is taken over the profiles whose head held its speed long enough to settle
     in some episode: a stop-and-go head whose holds are shorter than ``settle_seconds`` (its steady RMSE is the

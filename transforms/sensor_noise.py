@@ -64,7 +64,11 @@ class SensorNoise(Transform):
 
     Each measurement's error is a stationary first-order Gauss-Markov process of correlation time ``tau``:
     ``e_{k+1} = rho e_k + sqrt(1 - rho^2) std w_k``, ``rho = exp(-dt / tau)``, ``w_k ~ N(0, 1)``, drawn afresh at
-    reset (``tau = 0``: white noise, independent every step). The errors travel in the tensordict
+    reset (``tau = 0``: white noise, independent every step). Each entry is its own reading with its own error: the
+    leader's gap and speed from the CAV's radar, the head's over V2V (its broadcast position and speed), the CAV's
+    own speed from its odometer. Where the CAV's leader is the head (the ring's CAV right behind it), that car is
+    read twice, by two sensors, with independent errors; the safety layer and a residual's stopping envelope act
+    on the leader's reading. The errors travel in the tensordict
     (``("sensor_noise", <entry>)``), so a collector's rollouts carry them. Draws come from the transform's own
     generator (``seed``), so two controllers evaluated on the same episodes with the same seed see the same noise. The observation
     vector (``"observation"``, one block of features per CAV) is moved by the noise in the features

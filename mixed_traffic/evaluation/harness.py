@@ -378,14 +378,37 @@ def steady_only(per_episode: dict) -> list[float]:
     return [r for r, t in zip(per_episode["speed_rmse_steady"], per_episode["steady_seconds"]) if t > 0]
 
 
+def steadiness(per_episode: dict) -> dict:
+    """``steady_episodes``: how many of the episodes have steady samples (``steady_seconds`` > 0);
+    ``steady_seconds``: their mean length over all episodes (s); ``steady_only_rmse``: the mean steady RMSE of
+    the episodes that have them (None if none has). An episode without steady samples reports the whole-episode
+    RMSE as its steady RMSE (the metric's fallback), which the steady speed bar does not judge. Empty for a
+    report written before ``steady_seconds`` existed."""
+    secs = per_episode.get("steady_seconds")
+    if secs is None:
+        return {}
+    steady = steady_only(per_episode)
+    return {"steady_episodes": len(steady), "steady_seconds": sum(secs) / max(len(secs), 1),
+            "steady_only_rmse": sum(steady) / len(steady) if steady else None}
+
+
 def steady_rmse_mean(profile_report: dict) -> float | None:
     """A profile's steady RMSE as the acceptance judges it: the mean over its episodes with steady samples
     (:func:`steady_only`; all of them: the report's mean itself), None where no episode had any."""
     per = profile_report["per_episode"]
     if all(t > 0 for t in per["steady_seconds"]):
         return profile_report["metrics"]["speed_rmse_steady"]["mean"]
-    steady = steady_only(per)
-    return sum(steady) / len(steady) if steady else None
+    return steadiness(per)["steady_only_rmse"]
+
+
+def profile_entry(m: dict[str, torch.Tensor]) -> dict:
+    """One profile's (or one layer-free start's) entry of report.json from its per-episode metrics ``m``: the
+    aggregates, the collisions, every episode's figures and their :func:`steadiness` (``steady_only_rmse``: the
+    steady RMSE over the episodes that settle, where ``metrics.speed_rmse_steady`` averages in the others'
+    whole-episode fallback)."""
+    per_episode = {k: [float(x) for x in v] for k, v in m.items()}
+    return {"metrics": {k: aggregate(v) for k, v in m.items()}, "collisions": int(m["collision"].sum()),
+            "per_episode": per_episode, **steadiness(per_episode)}
 
 
 def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None, episodes: int | None = None,
@@ -432,11 +455,7 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     for prof in profiles:
         m, trace = results[prof]
         traces[prof] = trace
-        report["profiles"][prof] = {
-            "metrics": {k: aggregate(v) for k, v in m.items()},
-            "collisions": int(m["collision"].sum()),
-            "per_episode": {k: [float(x) for x in v] for k, v in m.items()},
-        }
+        report["profiles"][prof] = profile_entry(m)
         for k in METRICS:
             all_m[k].append(m[k])
     cat = {k: torch.cat(v) for k, v in all_m.items() if v}
@@ -469,9 +488,7 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
             res = free[prof]
             report["without_layer"][prof] = {}
             for label, (m, _tr) in res.items():
-                report["without_layer"][prof][label] = {
-                    "metrics": {k: aggregate(v) for k, v in m.items()}, "collisions": int(m["collision"].sum()),
-                    "per_episode": {k: [float(x) for x in v] for k, v in m.items()}}
+                report["without_layer"][prof][label] = profile_entry(m)
                 coll += int(m["collision"].sum())
                 # gap bounds after the warm-up (min_gap counts from t = 0, which a close start begins below)
                 gmin = min(gmin, float(m["min_gap_after"].min()))

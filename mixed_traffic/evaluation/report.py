@@ -94,7 +94,9 @@ def markdown(report: dict, title: str) -> str:
     unsteady = _unsteady(report["profiles"])
     if unsteady:
         lines += ["", "Steady RMSE where the head never held its speed long enough to settle: " + "; ".join(unsteady)
-                  + ". An episode without a steady state gives its whole-episode RMSE instead."]
+                  + ". An episode without a steady state gives its whole-episode RMSE instead; the table gives the "
+                  "mean over the episodes that settle (report.json: `steady_only_rmse`), or marks the whole-episode "
+                  "figure where none did."]
     nl = report.get("without_layer")
     if nl:
         lines += ["", "Without the safety layer (the policy's own commands executed), per start spacing:", ""]
@@ -129,6 +131,12 @@ def _unsteady(profiles: dict) -> list[str]:
     return out
 
 
+def _partly_steady(r: dict) -> bool:
+    """Whether some of an entry's episodes had no steady samples (False for a report from before the metric)."""
+    k = r.get("steady_episodes")
+    return k is not None and k < len(r["per_episode"]["steady_seconds"])
+
+
 def _cells(r: dict, columns) -> list[str]:
     cells = []
     for key, _, fmt in columns:
@@ -138,6 +146,10 @@ def _cells(r: dict, columns) -> list[str]:
         st = r["metrics"].get(key)
         if st is None:
             cells.append("–")
+        elif key == "speed_rmse_steady" and _partly_steady(r):
+            k, n = r["steady_episodes"], len(r["per_episode"]["steady_seconds"])
+            cells.append(f"{fmt.format(r['steady_only_rmse'])} (steady in {k} of {n} episodes, on those)" if k
+                         else f"{fmt.format(st['mean'])} (no steady state: whole episode)")
         elif key in ("min_gap", "min_gap_after"):
             cells.append(fmt.format(st["min"]))
         elif key == "max_head_gap":
