@@ -53,6 +53,15 @@ drive-off rule (``transforms.residual.drive_off``) began and run only on its res
 - ``stop_and_go_10_ring_250``: as ``stop_and_go`` at 10 m/s on a 250 m ring;
 - ``stop_and_go_15_humans_30pct``: ``stop_and_go_15`` with the humans' parameters spread +-30 %.
 
+Five more (``--cases fresh_4``), stops and drive-offs fixed before the backlash on the residual while the drive-off
+cap is engaged (``transforms.residual.drive_off.residual_play``) was evaluated, and run only on its result:
+
+- ``stop_and_go_14_short_hold``: 14 m/s and standstill at 2 m/s^2, holding 6 s, standing 3 s;
+- ``stop_and_go_16_gentle``: 16 m/s and standstill at 1.5 m/s^2, holding 12 s, standing 8 s;
+- ``stop_and_go_13_ring_300``: as ``stop_and_go`` at 13 m/s on a 300 m ring;
+- ``brake_from_17``: ``emergency_brake`` from 17 m/s down to 0 m/s;
+- ``stop_and_go_11_humans_50pct``: as ``stop_and_go`` at 11 m/s with the humans' parameters spread +-50 %.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -77,6 +86,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from mixed_traffic.evaluation.harness import steadiness  # noqa: E402
 
 
 def stop_and_go(seconds: float, v: float = 8.0, rate: float = 2.0, hold: float = 10.0, stop: float = 6.0) -> dict:
@@ -140,6 +151,17 @@ def cases(seconds: float) -> dict[str, dict]:
                                     "env": {"ring_length": 250.0}},
         "stop_and_go_15_humans_30pct": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=15.0),
                                         "eval": {"hdv_param_noise": 0.3}},
+        # fresh_4: stops and drive-offs fixed before the residual's backlash (drive_off.residual_play) was evaluated
+        "stop_and_go_14_short_hold": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=14.0, hold=6.0,
+                                                                                        stop=3.0)},
+        "stop_and_go_16_gentle": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=16.0, rate=1.5, hold=12.0,
+                                                                                    stop=8.0)},
+        "stop_and_go_13_ring_300": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=13.0),
+                                    "env": {"ring_length": 300.0}},
+        "brake_from_17": {"profile": "emergency_brake", "kwargs": {"start": 50.0, "v_cruise": 17.0, "v_low": 0.0}},
+        "stop_and_go_11_humans_50pct": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=11.0, hold=10.0,
+                                                                                          stop=6.0),
+                                        "eval": {"hdv_param_noise": 0.5}},
     }
 
 
@@ -150,8 +172,10 @@ TUNING = ("sine_cross", "steps_cross", "ramps_cross")
 FRESH_2 = ("sine_slow_wide", "ramps_wide", "steps_16_24", "perturbation_18", "brake_22_to_8", "stop_and_go_25")
 FRESH_3 = ("stop_and_go_12_slow", "stop_and_go_18_long_stop", "brake_from_20", "stop_and_go_10_ring_250",
            "stop_and_go_15_humans_30pct")
-GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3), "fresh": FRESH,
-          "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3}
+FRESH_4 = ("stop_and_go_14_short_hold", "stop_and_go_16_gentle", "stop_and_go_13_ring_300", "brake_from_17",
+           "stop_and_go_11_humans_50pct")
+GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4),
+          "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4}
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:
@@ -207,21 +231,6 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
     return cfg, name
 
 
-def steadiness(per_episode: dict) -> dict:
-    """``steady_episodes``: how many of the episodes have steady samples (``steady_seconds`` > 0);
-    ``steady_seconds``: their mean length over all episodes (s); ``steady_only_rmse``: the mean steady RMSE of
-    the episodes that have them (None if none has). An episode without steady samples reports the whole-episode
-    RMSE as its steady RMSE (the metric's fallback), which the steady speed bar does not judge."""
-    from mixed_traffic.evaluation.harness import steady_only
-
-    secs = per_episode.get("steady_seconds")
-    if secs is None:  # a report written before the metric existed
-        return {}
-    steady = steady_only(per_episode)
-    return {"steady_episodes": len(steady), "steady_seconds": sum(secs) / max(len(secs), 1),
-            "steady_only_rmse": sum(steady) / len(steady) if steady else None}
-
-
 def rmse_cell(r: dict) -> str:
     """The steady RMSE as a table shows it: marked where it is the whole-episode fallback on some or all episodes."""
     k, n = r.get("steady_episodes"), r.get("episodes")
@@ -232,27 +241,23 @@ def rmse_cell(r: dict) -> str:
     return f"{r['steady_only_rmse']:.3f} (steady in {k} of {n} episodes, on those)"
 
 
-def row(rep: dict, profile: str) -> dict:
-    p = rep["profiles"][profile]
-    m = p["metrics"]
-    return {"collisions": p["collisions"], "min_gap": m["min_gap"]["min"],
+def _row(entry: dict) -> dict:
+    """A table row of one report.json entry (a profile's, or a layer-free start's)."""
+    m = entry["metrics"]
+    return {"collisions": entry["collisions"], "min_gap": m["min_gap"]["min"],
             "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
-            "steady_rmse": m["speed_rmse_steady"]["mean"],
-            "jerk": m["mean_abs_jerk"]["mean"], "return": m["return"]["mean"],
-            "intervention_rate": m["safety_clip_rate"]["mean"], "episodes": len(p["per_episode"]["return"]),
-            **steadiness(p["per_episode"])}
+            "steady_rmse": m["speed_rmse_steady"]["mean"], "jerk": m["mean_abs_jerk"]["mean"],
+            "return": m["return"]["mean"], "episodes": len(entry["per_episode"]["return"]),
+            **steadiness(entry["per_episode"])}
+
+
+def row(rep: dict, profile: str) -> dict:
+    entry = rep["profiles"][profile]
+    return {**_row(entry), "intervention_rate": entry["metrics"]["safety_clip_rate"]["mean"]}
 
 
 def no_layer_rows(rep: dict, profile: str) -> dict:
-    out = {}
-    for label, r in rep["without_layer"][profile].items():
-        m = r["metrics"]
-        out[label] = {"collisions": r["collisions"], "min_gap": m["min_gap"]["min"],
-                      "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],
-                      "steady_rmse": m["speed_rmse_steady"]["mean"], "jerk": m["mean_abs_jerk"]["mean"],
-                      "return": m["return"]["mean"], "episodes": len(r["per_episode"]["return"]),
-                      **steadiness(r["per_episode"])}
-    return out
+    return {label: _row(r) for label, r in rep["without_layer"][profile].items()}
 
 
 def main(argv=None) -> dict:

@@ -222,6 +222,9 @@ class DriveOffConfig:
     speed from below instead of closing the gap by passing it. The cap lifts as the gap projected at ``accel``
     rises through ``gaps`` (m), so the gap stays in the band. ``when``: ``deploy`` (only where the policy is
     evaluated or deployed, as ``catch_up.when``) or ``always``. ``gain`` null (the default): off.
+    ``residual_play`` (m/s^2, > 0, or null): while the cap is engaged, the learned residual's term passes through
+    a backlash of this half-width (``transforms.ResidualAction(play=..., play_key=("drive_off", "engaged"))``): it
+    holds its level and drops the policy's small reversals behind a leader that drives off; null (the default): off.
     """
 
     gain: float | None = None  # 1/s; null: off
@@ -231,6 +234,7 @@ class DriveOffConfig:
     release: float = 5.0  # s
     standstill: float = 0.5  # m/s: the car and its leader both below it engage the cap
     when: str = "deploy"  # "always" or "deploy"
+    residual_play: float | None = None  # m/s^2: the residual's backlash while the cap is engaged; null: off
 
 
 @dataclass

@@ -423,14 +423,27 @@ def test_the_layer_recover_experiment_is_drive_off_with_the_recover_rule_at_depl
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
 
-def test_the_default_is_drive_off_with_the_layer_deployed_as_the_safety_net_alone_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_safety_net`` (the default) trains as ``ring_lagrangian_ppo_drive_off`` and
-    deploys the safety layer with its s_min rule only."""
+def test_the_default_is_the_safety_net_with_the_residuals_backlash_under_the_drive_off_cap_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_residual_play`` (the default) is ``ring_lagrangian_ppo_safety_net`` with a
+    backlash of 0.1 m/s^2 on the residual while the (deploy-only) drive-off cap is engaged."""
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
     from mixed_traffic.validation import validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_safety_net"
-    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_drive_off"))
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_residual_play"
+    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_safety_net"))
+    validate_config(d)
+    assert d.transforms.residual.drive_off.residual_play == 0.1 and d.transforms.residual.drive_off.when == "deploy"
+    with open_dict(d):
+        d.transforms.residual.drive_off.residual_play, d.name = None, prev.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
+
+
+def test_the_safety_net_is_drive_off_with_the_layer_deployed_as_the_safety_net_alone_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_safety_net`` trains as ``ring_lagrangian_ppo_drive_off`` and deploys the
+    safety layer with its s_min rule only."""
+    from mixed_traffic.validation import validate_config
+
+    d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_safety_net", "ring_lagrangian_ppo_drive_off"))
     validate_config(d)
     assert d.transforms.safety_layer.deployed_s_max is False and d.transforms.safety_layer.s_max == 38.0
     with open_dict(d):

@@ -155,3 +155,97 @@ def test_the_replayed_law_under_the_cap_commands_what_the_env_executes():
     torch.testing.assert_close(replayed.clamp(-3.0, 3.0)[moving], td["next", "cav", "accel"][0, :, 0][moving],
                                atol=1e-3, rtol=0)
     assert bool(td["next", "drive_off", "engaged"].any())  # the cap acted in this rollout
+
+
+# the residual's backlash while the cap is engaged (transforms.ResidualAction(play=..., play_key=...),
+# transforms.residual.drive_off.residual_play)
+
+def _zero_base(env):
+    from tensordict.nn import TensorDictModule
+
+    return TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["base"])
+
+
+def test_the_backlash_holds_the_residual_through_small_reversals():
+    """The executed term stays put until the policy's leaves +-play around it, then follows at that distance
+    (starting from 0 at reset); without play it is the policy's own."""
+    base = make_env("ring", batch_size=1, seed=0)
+    script = iter([0.3, 0.35, 0.28, 0.5, 0.1, 0.15])
+
+    def policy(td):
+        return td.set("action", torch.full((1, 1), next(script)))
+
+    env = TransformedEnv(base, ResidualAction(_zero_base(base), weight=1.0, play=0.1))
+    check_env_specs(env)
+    td = env.rollout(6, policy)
+    executed = td["next", "cav", "accel"][0, :, 0]
+    torch.testing.assert_close(executed, torch.tensor([0.2, 0.25, 0.25, 0.4, 0.2, 0.2]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(td["next", "residual", "held"][0, :, 0], executed, atol=1e-5, rtol=0)
+    script = iter([0.3, 0.35, 0.28, 0.5, 0.1, 0.15])
+    free = TransformedEnv(make_env("ring", batch_size=1, seed=0), ResidualAction(_zero_base(base), weight=1.0))
+    torch.testing.assert_close(free.rollout(6, policy)["next", "cav", "accel"][0, :, 0],
+                               torch.tensor([0.3, 0.35, 0.28, 0.5, 0.1, 0.15]), atol=1e-5, rtol=0)
+
+
+def test_the_backlash_acts_only_while_the_cap_is_engaged():
+    """Behind a head that stops and drives off, a policy that dithers by +-0.05 m/s^2 around 0.2: with the backlash
+    tied to the cap, the command stops dithering once the cap engages and dithers as before everywhere else."""
+    def run(play):
+        base = make_env("ring", batch_size=1, seed=0, **STOP)
+        res = ResidualAction(make_classic_policy("idm", base), weight=1.0, play=play,
+                             play_key=None if play is None else ("drive_off", "engaged"))
+        env = TransformedEnv(base, Compose(DriveOffCap(dt=base.scenario.dt), res))
+        k = iter(range(10 ** 6))
+        with torch.no_grad():
+            return env.rollout(600, lambda td: td.set("action", torch.full((1, 1), 0.2 + 0.05 * (-1) ** next(k))),
+                               break_when_any_done=False)
+
+    free, held = run(None), run(0.1)
+    engaged = held["next", "drive_off", "engaged"][0, :, 0]
+    assert bool(engaged[320:420].all()) and not bool(engaged[:150].any())
+    torch.testing.assert_close(held["next", "cav", "accel"][0, :150], free["next", "cav", "accel"][0, :150])
+    first = int(engaged.nonzero().min()) + 1  # the first step decided with the cap engaged
+    term = held["next", "residual", "held"][0, first + 1:420, 0]
+    assert float(term.max() - term.min()) < 1e-6  # held through the dither
+    free_term = free["next", "cav", "accel"][0, first:420, 0] - free["residual", "base_action"][0, first:420, 0]
+    assert float((free_term[1:] - free_term[:-1]).abs().max()) > 0.09  # ... which passes without the backlash
+
+
+def test_the_config_ties_the_backlash_to_the_deployed_cap():
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play"]))
+    env = make_transformed_env(cfg, num_envs=2, seed=0, deploy=True)
+    check_env_specs(env)
+    res = next(t for t in env.transform if isinstance(t, ResidualAction))
+    assert res.play == 0.1 and res.play_key == ("drive_off", "engaged")
+    trained = next(t for t in make_transformed_env(cfg, num_envs=1, seed=0).transform if isinstance(t, ResidualAction))
+    assert trained.play is None  # the cap is deploy-only, and the backlash with it: the weights are unchanged
+    with pytest.raises(ConfigError, match=r"transforms.residual.drive_off.residual_play: 0.0 is out of range"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play",
+                                 "transforms.residual.drive_off.residual_play=0.0"]))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"play": 0.0}, r"ResidualAction: play=0.0 is invalid; allowed: > 0"),
+    ({"play_key": ("drive_off", "engaged")}, r"ResidualAction: play_key without play"),
+])
+def test_bad_backlash_settings_name_the_argument(kwargs, match):
+    base = make_env("ring", batch_size=1, seed=0)
+    with pytest.raises(ValueError, match=match):
+        ResidualAction(_zero_base(base), **kwargs)
+
+
+def test_a_missing_play_key_is_a_clear_error():
+    base = make_env("ring", batch_size=1, seed=0)
+    env = TransformedEnv(base, ResidualAction(_zero_base(base), play=0.1, play_key=("drive_off", "engaged")))
+    with pytest.raises(RuntimeError, match=r"play_key \('drive_off', 'engaged'\) is not in the step's input"):
+        env.rollout(2, lambda td: td.set("action", torch.zeros(1, 1)))
+
+
+def test_a_partial_reset_keeps_the_other_rows_held_residual():
+    base = make_env("ring", batch_size=2, seed=0)
+    env = TransformedEnv(base, ResidualAction(_zero_base(base), play=0.1))
+    res = env.transform
+    state = TensorDict({("residual", "held"): torch.tensor([[0.3], [0.4]]), "_reset": torch.tensor([[True], [False]])},
+                       batch_size=[2])
+    out = res._reset(state, TensorDict({}, batch_size=[2]))
+    torch.testing.assert_close(out["residual", "held"], torch.tensor([[0.0], [0.4]]))

@@ -728,11 +728,13 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert mod.case_names(["fresh"], all_cases) == list(mod.GROUPS["fresh"])
     assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
-    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3'\]"):
+    with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3', "
+                                         r"'fresh_4'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
     assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6 and len(mod.GROUPS["fresh_3"]) == 5
+    assert len(mod.GROUPS["fresh_4"]) == 5
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
@@ -752,6 +754,10 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     for name in mod.GROUPS["tuning"]:  # the tuning cases cross the laws' handover speeds (16-20 m/s) both ways
         v = head_speeds(name, 3000)
         assert float(v.min()) < 16.0 and float(v.max()) > 20.0, name
+    for name in mod.GROUPS["fresh_4"]:  # stop cases: the head stands still, and drives off again (but a hard brake)
+        v = head_speeds(name, 9000)
+        assert float(v.min()) == 0.0 and float(v.max()) <= 20.0, name
+        assert name == "brake_from_17" or float(v[-300:].max()) > 10.0, name
 
 
 def test_jerk_shares_by_speed_add_up_to_the_reports_mean_jerk():

@@ -17,6 +17,7 @@ from transforms.specs import (
     action_shaped_full,
     carry_to_next,
     entries_or_none,
+    kept_rows,
     with_action_shaped_entry,
     with_bounded_action,
 )
@@ -63,6 +64,15 @@ class ResidualAction(Transform):
             below which an accelerating residual also fades linearly, ``clamp(slack / fade_slack, 0, 1)``:
             a fade that starts before the bound is reached, where the room alone falls from full to 0
             within centimetres (default None: the room alone).
+        play: half-width (m/s^2, > 0) of a backlash on the residual's term (after ``engage_seconds`` and
+            ``fade_speeds``): the term executed stays where it was on the last step until the policy's moves more
+            than ``play`` away from it, and then follows it at that distance (default None: no backlash). It
+            drops the policy's small reversals, which cost jerk, and keeps its level and its large moves. Its
+            state travels in the tensordict (``held_key``), reset to 0.
+        play_key: a boolean entry (e.g. :class:`transforms.DriveOffCap`'s ``("drive_off", "engaged")``); the
+            backlash acts only where it is true, and elsewhere the term passes as the policy gives it (default
+            None: everywhere).
+        held_key: where the backlash keeps the term it executed (default ``("residual", "held")``).
 
     Example:
         >>> from mixed_traffic import make_env
@@ -83,7 +93,8 @@ class ResidualAction(Transform):
                  policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), fade_speeds: tuple[float, float] | None = None,
                  speed_key: NestedKey = ("cav", "speed"), room_key: NestedKey | None = None,
-                 slack_key: NestedKey | None = None, fade_slack: float | None = None):
+                 slack_key: NestedKey | None = None, fade_slack: float | None = None, play: float | None = None,
+                 play_key: NestedKey | None = None, held_key: NestedKey = ("residual", "held")):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if not engage_seconds >= 0:
@@ -100,7 +111,12 @@ class ResidualAction(Transform):
             raise ValueError("ResidualAction: slack_key and fade_slack go together, and with a room_key")
         if fade_slack is not None and not fade_slack > 0:
             raise ValueError(f"ResidualAction: fade_slack={fade_slack!r} is invalid; allowed: > 0 (m)")
+        if play is not None and not play > 0:
+            raise ValueError(f"ResidualAction: play={play!r} is invalid; allowed: > 0 (m/s^2), or None")
+        if play_key is not None and play is None:
+            raise ValueError("ResidualAction: play_key without play; give play (m/s^2) or drop play_key")
         super().__init__(in_keys=[], out_keys=[base_action_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
+        self.play, self.play_key, self.held_key = None if play is None else float(play), play_key, held_key
         self.policy_bounds = None if policy_bounds is None else (float(policy_bounds[0]), float(policy_bounds[1]))
         self.base = base
         self.weight = float(weight)
@@ -157,6 +173,8 @@ class ResidualAction(Transform):
             v = tensordict.get(self.speed_key).to(a_res.dtype).reshape(a_res.shape)
             weight = weight * ((v_zero - v) / (v_zero - v_full)).clamp(0.0, 1.0)
         residual = weight * a_res
+        if self.play is not None:
+            residual = self._backlash(tensordict, residual)
         if self.room_key is not None:
             room = base_out.get(self.room_key).to(a_res.dtype).reshape(a_res.shape).clamp_min(0.0)
             fade = (room / self._residual_max(a_res).clamp_min(1e-9)).clamp(max=1.0)
@@ -170,11 +188,34 @@ class ResidualAction(Transform):
         tensordict.set(self.base_action_key, a_base)
         return tensordict
 
+    def _backlash(self, tensordict: TensorDictBase, residual: torch.Tensor) -> torch.Tensor:
+        """The residual's term through the backlash (``play``), its state updated in ``tensordict``."""
+        held = tensordict.get(self.held_key, None)
+        if held is None:
+            raise RuntimeError("ResidualAction: the step's input has no held residual (play); reset the env through "
+                               "the TransformedEnv before stepping it")
+        held = held.to(residual.dtype).reshape(residual.shape)
+        played = torch.minimum(torch.maximum(held, residual - self.play), residual + self.play)
+        if self.play_key is not None:
+            on = tensordict.get(self.play_key, None)
+            if on is None:
+                raise RuntimeError(f"ResidualAction: play_key {self.play_key!r} is not in the step's input; put the "
+                                   "transform that writes it (e.g. DriveOffCap) in the chain")
+            played = torch.where(on.reshape(residual.shape), played, residual)
+        tensordict.set(self.held_key, played.detach())
+        return played
+
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        return carry_to_next(tensordict, next_tensordict, self.base_action_key)
+        return carry_to_next(tensordict, next_tensordict, self.base_action_key, self.held_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         tensordict_reset.set(self.base_action_key, action_shaped_full(self.parent, self.action_key, 0.0))
+        if self.play is not None:
+            held = action_shaped_full(self.parent, self.action_key, 0.0)
+            keep = kept_rows(tensordict, held, self.held_key)
+            if keep is not None:  # rows not reset keep their state
+                held = torch.where(keep, tensordict.get(self.held_key).to(held), held)
+            tensordict_reset.set(self.held_key, held)
         return tensordict_reset
 
     def transform_action_spec(self, action_spec):
@@ -183,11 +224,15 @@ class ResidualAction(Transform):
         return with_bounded_action(action_spec, self.action_key, *self.policy_bounds)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        return with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.base_action_key)
+        observation_spec = with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.base_action_key)
+        if self.play is not None:
+            observation_spec = with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.held_key)
+        return observation_spec
 
     def __repr__(self) -> str:
         engage = f", engage_seconds={self.engage_seconds}" if self.engage_seconds else ""
         fade = f", fade_speeds={self.fade_speeds}" if self.fade_speeds else ""
         room = f", room_key={self.room_key}" if self.room_key is not None else ""
         room += f", fade_slack={self.fade_slack}" if self.fade_slack is not None else ""
+        room += f", play={self.play}" + (f" while {self.play_key}" if self.play_key is not None else "") if self.play else ""
         return f"{type(self).__name__}(weight={self.weight}{engage}{fade}{room}, base={type(self.base).__name__})"

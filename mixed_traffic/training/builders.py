@@ -223,6 +223,7 @@ def drive_off_cap(rcfg, env):
 
 def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
+    from transforms.drive_off import ENGAGED
 
     r = tcfg.residual
     try:
@@ -233,11 +234,15 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key,
                              deploy=deploy)
         fade = r.get("fade_speeds")
+        cap = drive_off_cap(r, env)
+        if cap is not None and not (deploy or r.drive_off.get("when", "deploy") == "always"):
+            cap = None  # a deploy-only cap while training
+        play = None if cap is None else r.drive_off.get("residual_play")
         residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
                                   fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
-                                  slack_key=slack_key, fade_slack=fade_slack)
-        cap = drive_off_cap(r, env)
-        if cap is None or not (deploy or r.drive_off.get("when", "deploy") == "always"):
+                                  slack_key=slack_key, fade_slack=fade_slack, play=play,
+                                  play_key=None if play is None else ENGAGED)
+        if cap is None:
             return residual
         return [cap, residual]  # the action passes the residual first, then the cap
     except ValueError as e:
