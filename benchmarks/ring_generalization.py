@@ -87,8 +87,6 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from mixed_traffic.evaluation.harness import steadiness  # noqa: E402
-
 
 def stop_and_go(seconds: float, v: float = 8.0, rate: float = 2.0, hold: float = 10.0, stop: float = 6.0) -> dict:
     ramp = v / rate
@@ -232,17 +230,16 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
 
 
 def rmse_cell(r: dict) -> str:
-    """The steady RMSE as a table shows it: marked where it is the whole-episode fallback on some or all episodes."""
-    k, n = r.get("steady_episodes"), r.get("episodes")
-    if k is None or n is None or k == n:
-        return f"{r['steady_rmse']:.3f}"
-    if k == 0:
-        return f"{r['steady_rmse']:.3f} (no steady state: whole episode)"
-    return f"{r['steady_only_rmse']:.3f} (steady in {k} of {n} episodes, on those)"
+    """A row's steady RMSE as the table shows it (:func:`mixed_traffic.evaluation.report.steady_rmse_cell`)."""
+    from mixed_traffic.evaluation.report import steady_rmse_cell
+
+    return steady_rmse_cell(r["steady_rmse"], r.get("steady_episodes"), r.get("episodes"), r.get("steady_only_rmse"))
 
 
 def _row(entry: dict) -> dict:
     """A table row of one report.json entry (a profile's, or a layer-free start's)."""
+    from mixed_traffic.evaluation.harness import steadiness
+
     m = entry["metrics"]
     return {"collisions": entry["collisions"], "min_gap": m["min_gap"]["min"],
             "min_gap_after": m["min_gap_after"]["min"], "max_head_gap": m["max_head_gap"]["max"],

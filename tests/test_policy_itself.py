@@ -784,19 +784,21 @@ def test_generalization_marks_a_steady_rmse_that_is_the_whole_episodes(benchmark
     """benchmarks/ring_generalization.py: a case whose head holds its speed in no episode (stop_and_go_25's holds
     are shorter than the settling time) reports the whole-episode RMSE as its steady RMSE; its rows say so, and a
     case steady in some episodes gives the figure of those alone."""
+    from mixed_traffic.evaluation.harness import steadiness
+
     mod = benchmark_script("ring_generalization")
     per = {"speed_rmse_steady": [1.9, 1.8, 0.1, 0.3], "steady_seconds": [0.0, 0.0, 2.0, 3.0]}
-    s = mod.steadiness(per)
+    s = steadiness(per)
     assert s["steady_episodes"] == 2 and s["steady_only_rmse"] == pytest.approx(0.2)
     assert s["steady_seconds"] == pytest.approx(1.25)
     row = {"steady_rmse": 1.025, "episodes": 4, **s}
     assert mod.rmse_cell(row) == "0.200 (steady in 2 of 4 episodes, on those)"
-    none = {"steady_rmse": 1.85, "episodes": 4, **mod.steadiness({"speed_rmse_steady": [1.85] * 4,
+    none = {"steady_rmse": 1.85, "episodes": 4, **steadiness({"speed_rmse_steady": [1.85] * 4,
                                                                  "steady_seconds": [0.0] * 4})}
     assert mod.rmse_cell(none) == "1.850 (no steady state: whole episode)"
-    assert mod.rmse_cell({"steady_rmse": 0.15, "episodes": 4, **mod.steadiness(
+    assert mod.rmse_cell({"steady_rmse": 0.15, "episodes": 4, **steadiness(
         {"speed_rmse_steady": [0.15] * 4, "steady_seconds": [7.0] * 4})}) == "0.150"
-    assert mod.steadiness({"speed_rmse_steady": [0.1]}) == {}  # a report from before the metric: unmarked
+    assert steadiness({"speed_rmse_steady": [0.1]}) == {}  # a report from before the metric: unmarked
     assert mod.rmse_cell({"steady_rmse": 0.1}) == "0.100"
 
 

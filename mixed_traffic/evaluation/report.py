@@ -131,6 +131,18 @@ def _unsteady(profiles: dict) -> list[str]:
     return out
 
 
+def steady_rmse_cell(rmse: float, steady: int | None, episodes: int | None, steady_only: float | None,
+                     fmt: str = "{:.3f}") -> str:
+    """A steady RMSE as a table shows it: ``rmse`` (the mean over all episodes) marked where it is the whole-episode
+    fallback on every episode (``steady`` 0 of ``episodes``), ``steady_only`` (the mean over the episodes that
+    settle) marked where only some settle, ``rmse`` alone where all do or the counts were not recorded (None)."""
+    if steady is None or episodes is None or steady == episodes:
+        return fmt.format(rmse)
+    if steady == 0:
+        return f"{fmt.format(rmse)} (no steady state: whole episode)"
+    return f"{fmt.format(steady_only)} (steady in {steady} of {episodes} episodes, on those)"
+
+
 def _partly_steady(r: dict) -> bool:
     """Whether some of an entry's episodes had no steady samples (False for a report from before the metric)."""
     k = r.get("steady_episodes")
@@ -147,9 +159,8 @@ def _cells(r: dict, columns) -> list[str]:
         if st is None:
             cells.append("–")
         elif key == "speed_rmse_steady" and _partly_steady(r):
-            k, n = r["steady_episodes"], len(r["per_episode"]["steady_seconds"])
-            cells.append(f"{fmt.format(r['steady_only_rmse'])} (steady in {k} of {n} episodes, on those)" if k
-                         else f"{fmt.format(st['mean'])} (no steady state: whole episode)")
+            cells.append(steady_rmse_cell(st["mean"], r["steady_episodes"], len(r["per_episode"]["steady_seconds"]),
+                                          r["steady_only_rmse"], fmt))
         elif key in ("min_gap", "min_gap_after"):
             cells.append(fmt.format(st["min"]))
         elif key == "max_head_gap":
