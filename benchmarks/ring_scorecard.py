@@ -24,7 +24,8 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000, "fresh_4": 9000}
-CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best classical; CACC
+CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best classical; CACC. They stand in for a
+# colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same two)
 
 
 def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical) -> list[tuple]:

@@ -235,6 +235,35 @@ def _generalization_json(path, *, jerk, gap, seed=2000, v2v=None, cacc=True, lay
     return path
 
 
+def test_a_colliding_idm_is_not_the_reference_of_the_jerk_and_return_bars(tmp_path):
+    """Where IDM-as-CAV collides, its episodes end at the collision: its jerk and return cover a shorter window
+    than the policy's, so the bars (and the table's columns against IDM's) compare with the first classical
+    controller that completes every episode, taken from whichever run evaluated it, and the row is marked."""
+    from mixed_traffic.evaluation.results import bar_reference, case_bars, clean_cases, generalization_table
+
+    a = _generalization_json(tmp_path / "s0", jerk=0.09, gap=7.5, layered=0.09, cacc=True)
+    b = _generalization_json(tmp_path / "s1", jerk=0.09, gap=7.5, layered=0.09, cacc=False)
+    for d in (a, b):  # IDM-as-CAV crashes early: a high jerk over a short window, a small return
+        g = json.loads((d / "generalization.json").read_text())
+        g["results"]["sine_fast"]["idm"].update(collisions=4, episodes=4, jerk=0.2, **{"return": 10.0})
+        (d / "generalization.json").write_text(json.dumps(g))
+    x = json.loads((a / "generalization.json").read_text())["results"]["sine_fast"]
+    assert bar_reference(x) == ("cacc", x["cacc"])  # cacc: jerk 0.12, return 100, no collision
+    assert case_bars(x)["jerk"] is True and case_bars(x)["return"] is True
+    x["cacc"]["jerk"] = 0.08  # smoother than the policy: the jerk bar is missed, whatever the crashed IDM had
+    assert case_bars(x)["jerk"] is False
+    x["cacc"]["collisions"] = 1  # no stand-in completes: the two bars are not judged
+    assert bar_reference(x) == (None, None) and case_bars(x)["jerk"] is None and case_bars(x)["return"] is None
+    # the second run has no cacc row: it is taken from the first run (the same episodes)
+    xb = json.loads((b / "generalization.json").read_text())["results"]["sine_fast"]
+    assert bar_reference(xb) == (None, None) and bar_reference(xb, {"cacc": x["cacc"] | {"collisions": 0}})[0] == "cacc"
+    assert clean_cases([a, b]) == (1, 1)
+    rows = generalization_table([a, b], bars=True).splitlines()
+    assert rows[4].startswith("| sine_fast † | 0 | 7.50–36.0 | -25.0 % |")  # 0.09 against cacc's 0.12, not IDM's 0.2
+    assert rows[6].startswith("† sine_fast: IDM-as-CAV collided on 4 of 4 episodes") and "against cacc" in rows[6]
+    assert rows[-1].endswith("the policy (the first run) 1, idm 0, cacc 1 of the 1 cases.")  # cacc is the reference
+
+
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):
     from mixed_traffic.evaluation.results import generalization_table, main
 

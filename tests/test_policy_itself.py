@@ -816,6 +816,8 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 20 s a case")
     assert "## fresh_3 (evaluation seed 8000)" in md and "| bars missed (of 2 runs) |" in md
     assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table
+    from mixed_traffic.evaluation.results import REFERENCE_FALLBACK
+    assert mod.CLASSICAL == REFERENCE_FALLBACK  # by default the scorecard runs the stand-ins for a colliding IDM
     import json
     assert "cacc" in json.loads((out / "run0" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
     assert "cacc" not in json.loads((out / "run1" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]

@@ -224,29 +224,65 @@ def _standard(x: dict) -> dict:
     return free[next(k for k in free if k.startswith("standard"))]
 
 
+REFERENCE_FALLBACK = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")
+"""The classical controllers that take IDM-as-CAV's place as the reference of the jerk and return bars, in this
+order, on a case where IDM-as-CAV collides: IDM_cav (b = 2) and CACC (``benchmarks/ring_scorecard.py`` evaluates
+them beside its first run)."""
+
+
+def bar_reference(x: dict, others: dict | None = None) -> tuple[str | None, dict | None]:
+    """``(name, row)`` of the reference of the jerk and return bars on one case (``x``: a run's ``results[case]`` of
+    ``benchmarks/ring_generalization.py``; ``others``: rows of classical controllers on the same case's episodes
+    from other runs, by name).
+
+    IDM-as-CAV (``idm``) where it completes every episode without a collision. Where it collides, its jerk and
+    return cover only the steps before its collision (the episode ends there), not the episode the policy drives,
+    so the first of :data:`REFERENCE_FALLBACK` that completes every episode takes its place; ``(None, None)`` where
+    none does or none was evaluated (the two bars are then not judged)."""
+    if x["idm"]["collisions"] == 0:
+        return "idm", x["idm"]
+    pool = {**(others or {}), **{k: x[k] for k in REFERENCE_FALLBACK if k in x}}
+    name = next((k for k in REFERENCE_FALLBACK if k in pool and pool[k]["collisions"] == 0), None)
+    return name, pool.get(name)
+
+
 def case_bars(x: dict, *, s_min: float = 5.0, s_max: float = 40.0, rmse_bar: float = 0.2,
-              share_bar: float = 0.05) -> dict[str, bool | None]:
+              share_bar: float = 0.05, others: dict | None = None) -> dict[str, bool | None]:
     """Which of the ring's acceptance bars one run of ``benchmarks/ring_generalization.py`` meets on one case
     (``x``: its ``results[case]``). The policy with its layer and without it from every start: no collision;
     without it, the gaps after the warm-up within ``[s_min, s_max]`` (to :data:`GAP_TOLERANCE`); from the
     standard start, with the layer and without it, a jerk at or below IDM-as-CAV's, a return at or above it and
     a steady RMSE at most ``rmse_bar`` (None, not judged, where no episode had a steady state; on the episodes
-    that had one where only some had); the layer's share of steps at most ``share_bar``."""
-    free, pol, idm, std = x["policy_without_layer"], x["policy"], x["idm"], _standard(x)
+    that had one where only some had); the layer's share of steps at most ``share_bar``. Where IDM-as-CAV
+    collides, the jerk and return bars compare with :func:`bar_reference`'s controller (``others``: its rows
+    from other runs on the same episodes)."""
+    free, pol, std = x["policy_without_layer"], x["policy"], _standard(x)
+    _, ref = bar_reference(x, others)
     return {"collisions": pol["collisions"] + sum(v["collisions"] for v in free.values()) == 0,
             "gaps": all(_gaps_met(v, s_min, s_max) for v in free.values()),
-            "jerk": std["jerk"] <= idm["jerk"] and pol["jerk"] <= idm["jerk"],
+            "jerk": None if ref is None else std["jerk"] <= ref["jerk"] and pol["jerk"] <= ref["jerk"],
             "steady RMSE": _rmse_met(std, rmse_bar),
-            "return": std["return"] >= idm["return"] and pol["return"] >= idm["return"],
+            "return": None if ref is None else std["return"] >= ref["return"] and pol["return"] >= ref["return"],
             "layer's share": pol["intervention_rate"] <= share_bar + 1e-9}
 
 
-def row_bars(r: dict, idm: dict, *, s_min: float = 5.0, s_max: float = 40.0,
+def row_bars(r: dict, ref: dict | None, *, s_min: float = 5.0, s_max: float = 40.0,
              rmse_bar: float = 0.2) -> dict[str, bool | None]:
     """The same bars for one controller's row of a case (``r``: a classical baseline's, or the policy's from one
-    start) against IDM-as-CAV's (``idm``), without a layer: what a reader holds the policy's against."""
-    return {"collisions": r["collisions"] == 0, "gaps": _gaps_met(r, s_min, s_max), "jerk": r["jerk"] <= idm["jerk"],
-            "steady RMSE": _rmse_met(r, rmse_bar), "return": r["return"] >= idm["return"], "layer's share": True}
+    start) against the reference's row (``ref``: :func:`bar_reference`'s, IDM-as-CAV's where it completes; None:
+    those two bars not judged), without a layer: what a reader holds the policy's against."""
+    return {"collisions": r["collisions"] == 0, "gaps": _gaps_met(r, s_min, s_max),
+            "jerk": None if ref is None else r["jerk"] <= ref["jerk"], "steady RMSE": _rmse_met(r, rmse_bar),
+            "return": None if ref is None else r["return"] >= ref["return"], "layer's share": True}
+
+
+def _classical_pool(runs, case: str) -> dict:
+    """The rows of :data:`REFERENCE_FALLBACK`'s controllers on ``case`` from whichever run evaluated them (a
+    classical controller drives the same episodes in every run)."""
+    pool = {}
+    for _, g in runs:
+        pool.update({k: g["results"][case][k] for k in REFERENCE_FALLBACK if k in g["results"][case] and k not in pool})
+    return pool
 
 
 def _missed(per_run: list[dict]) -> str:
@@ -281,7 +317,8 @@ def clean_cases(dirs, *, rmse_bar: float = 0.2) -> tuple[int, int]:
     """``(cases that meet every bar on every run, cases)`` of runs of ``benchmarks/ring_generalization.py``
     (:func:`case_bars`): the count the ``bars`` table of :func:`generalization_table` ends with."""
     runs, cases = _load_runs(dirs)
-    clean = sum(all(v is not False for _, g in runs for v in case_bars(g["results"][c], rmse_bar=rmse_bar).values())
+    clean = sum(all(v is not False for _, g in runs
+                    for v in case_bars(g["results"][c], rmse_bar=rmse_bar, others=_classical_pool(runs, c)).values())
                 for c in cases)
     return clean, len(cases)
 
@@ -296,7 +333,9 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     against IDM-as-CAV's with the layer, and the layer's largest share of steps; then the jerk against
     IDM-as-CAV's of every other baseline the runs evaluated (e.g. ``cacc``, ``base``): a classical controller
     drives the same episodes in every run, so one run that evaluated it on every case is enough, and its range is
-    over the runs that did. With ``bars``, a last column names the acceptance bars missed and on how many runs
+    over the runs that did. Where IDM-as-CAV collides on a case (its figures then cover only the steps before its
+    collision), that row's columns against IDM's are against :func:`bar_reference`'s stand-in instead, marked
+    with a note under the table. With ``bars``, a last column names the acceptance bars missed and on how many runs
     (:func:`case_bars`, the steady RMSE at most ``rmse_bar``), and a line after the table counts the cases that
     meet every bar on every run. Refuses runs whose cases were evaluated on other episodes, over another V2V
     link or with other measurement noise.
@@ -320,9 +359,11 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
                 + (f", the layer's and envelope's margin {noise['margin']:g} standard deviations" if noise.get("margin") else "")
                 if noise["gap"] or noise["speed"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    clean = 0
+    clean, notes = 0, []
     for c in cases:
+        pool = _classical_pool(runs, c)
         coll, gmin, gmax, jerk, rmse, ret, layered, layer = 0, math.inf, -math.inf, [], [], [], [], []
+        crashed = set()  # the references that stood in for a colliding IDM-as-CAV, or None where none could
         met = []
         steady_in = []  # (episodes with a steady state, episodes) per run; None: not recorded
         other = {o: [] for o in others}
@@ -331,7 +372,11 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
             if "idm" not in x:
                 raise ValueError(f"--generalization: case {c!r} has no idm baseline; allowed: runs made with "
                                  "--baselines idm (IDM-as-CAV, the reference of the bars)")
-            free, std, idm = x["policy_without_layer"], _standard(x), x["idm"]
+            free, std = x["policy_without_layer"], _standard(x)
+            name, idm = bar_reference(x, pool)
+            if name != "idm":
+                crashed.add(name)
+                idm = x["idm"] if idm is None else idm  # no stand-in: the figures against IDM's, the bars not judged
             coll += x["policy"]["collisions"] + sum(v["collisions"] for v in free.values())
             gmin = min(gmin, *(v["min_gap_after"] for v in free.values()))
             gmax = max(gmax, *(v["max_head_gap"] for v in free.values()))
@@ -345,27 +390,38 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
             for o in others:
                 if o in x:
                     other[o].append(100.0 * (x[o]["jerk"] / idm["jerk"] - 1.0))
-            met.append(case_bars(x, rmse_bar=rmse_bar))
-        cells = [c, str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f") + _steadiness(steady_in),
+            met.append(case_bars(x, rmse_bar=rmse_bar, others=pool))
+        if crashed:
+            n_idm = x["idm"]
+            stand_in = ", ".join(sorted(k for k in crashed if k))
+            notes.append(f"† {c}: IDM-as-CAV collided on {n_idm['collisions']} of {n_idm.get('episodes', '?')} "
+                         "episodes; its jerk and return cover only the steps before its collision, so this row's "
+                         "columns against IDM's, and the jerk and return bars, are against "
+                         + (f"{stand_in} (the first classical controller that completes every episode)" if stand_in
+                            else "IDM's all the same: no classical controller completed every episode (those two "
+                                 "bars not judged)") + ".")
+        cells = [c + (" †" if crashed else ""), str(coll), f"{gmin:.2f}–{gmax:.1f}", _span(jerk, "+.1f", " %"), _span(rmse, ".3f") + _steadiness(steady_in),
                  _span(ret, "+.1f"), _span(layered, "+.1f", " %"), f"{max(layer):.1f} %",
                  *(_span(v, "+.1f", " %") for v in other.values())]
         if bars:
             cells.append(_missed(met))
             clean += cells[-1] == "–"
         lines.append("| " + " | ".join(cells) + " |")
+    lines += [""] + notes if notes else []
     if bars:
         lines += ["", f"{clean} of {len(cases)} cases meet every bar on every run (the steady RMSE at most "
                       f"{rmse_bar:g} m/s where the head settles; the gaps within [5, 40] m after the warm-up)."]
         first = runs[0][1]["results"]
 
-        def clean_on(rows) -> int:  # cases where a controller's rows meet every bar (rows: case -> (row, idm's))
+        def clean_on(rows) -> int:  # cases where a controller's rows meet every bar (rows: (row, reference's))
             return sum(not any(v is False for v in row_bars(r, i, rmse_bar=rmse_bar).values()) for r, i in rows)
 
-        counts = [f"the policy (the first run) {clean_on((_standard(first[c]), first[c]['idm']) for c in cases)}"]
+        refs = {c: bar_reference(first[c], _classical_pool(runs, c))[1] for c in cases}
+        counts = [f"the policy (the first run) {clean_on((_standard(first[c]), refs[c]) for c in cases)}"]
         for o in ["idm", *others]:
             g = next((g["results"] for _, g in runs if all(o in g["results"][c] for c in cases)), None)
             if g is not None:
-                counts.append(f"{o} {clean_on((g[c][o], g[c]['idm']) for c in cases)}")
+                counts.append(f"{o} {clean_on((g[c][o], refs[c]) for c in cases)}")
         lines.append(f"From the standard start, without a layer, on the same episodes, the controllers meet every bar "
                      f"on: {', '.join(counts)} of the {len(cases)} cases.")
     return "\n".join(lines)
