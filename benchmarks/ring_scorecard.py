@@ -6,7 +6,9 @@ the classical controllers of ``--classical`` beside the first run only (they do 
 the same episodes in every run). Then prints and writes ``OUT/scorecard.md``: per group, the table of
 ``python -m mixed_traffic.evaluation.results --generalization ... --bars`` (which acceptance bars each case
 misses and on how many runs, and what each controller meets alone), and a line counting the clean cases over
-all groups. A group whose output is already there is not run again (``--rerun`` to run it anyway)::
+all groups, and draws ``OUT/scorecard.png`` (per case, the policy's jerk and return against the bars' reference over
+the runs, beside the classical controllers'). A group whose output is already there is not run again (``--rerun``
+to run it anyway)::
 
     python benchmarks/ring_scorecard.py --runs outputs/results/ring_safety_net_seed{0,1,2,3,4} --jobs 2 \\
         --out outputs/results/scorecard
@@ -61,7 +63,7 @@ def main(argv=None) -> str:
         raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
     if a.jobs < 1:
         raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
-    from mixed_traffic.evaluation.results import clean_cases, generalization_table
+    from mixed_traffic.evaluation.results import clean_cases, generalization_table, scorecard_plot
 
     out = Path(a.out)
     todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical)
@@ -90,6 +92,9 @@ def main(argv=None) -> str:
             f"{clean} of {total} cases meet every bar on every run.", ""]
     md = "\n".join(head + parts)
     (out / "scorecard.md").write_text(md)
+    scorecard_plot({g: [out / f"run{i}" / g for i in range(len(a.runs))] for g in a.groups}, out / "scorecard.png",
+                   rmse_bar=a.rmse_bar, title=f"Scorecard: {len(a.runs)} run(s), {clean} of {total} cases meet every bar "
+                                               "on every run; jerk and return against IDM-as-CAV († its stand-in)")
     print(md)
     return md
 

@@ -262,6 +262,10 @@ def test_a_colliding_idm_is_not_the_reference_of_the_jerk_and_return_bars(tmp_pa
     assert rows[4].startswith("| sine_fast † | 0 | 7.50–36.0 | -25.0 % |")  # 0.09 against cacc's 0.12, not IDM's 0.2
     assert rows[6].startswith("† sine_fast: IDM-as-CAV collided on 4 of 4 episodes") and "against cacc" in rows[6]
     assert rows[-1].endswith("the policy (the first run) 1, idm 0, cacc 1 of the 1 cases.")  # cacc is the reference
+    from mixed_traffic.evaluation.results import scorecard_margins
+    (m,) = scorecard_margins([a, b])  # what the scorecard's figure draws: against the stand-in, per run
+    assert m["reference"] == "cacc" and m["clean"] and m["jerk"] == pytest.approx([-25.0, -25.0])
+    assert m["return"] == pytest.approx([0.0, 0.0]) and m["classical"] == {}  # IDM collided: not drawn
 
 
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):

@@ -813,6 +813,7 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
             "--classical", "cacc", "--out", str(out)]
     md = mod.main(args)
     assert (out / "scorecard.md").read_text() == md
+    assert (out / "scorecard.png").stat().st_size > 10_000  # the figure: per case, jerk and return against the reference
     assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 20 s a case")
     assert "## fresh_3 (evaluation seed 8000)" in md and "| bars missed (of 2 runs) |" in md
     assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table

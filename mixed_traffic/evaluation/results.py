@@ -427,6 +427,91 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     return "\n".join(lines)
 
 
+def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
+    """Per case of runs of ``benchmarks/ring_generalization.py`` on the same episodes (one per seed): the policy's
+    jerk and return against the reference of the bars (:func:`bar_reference`) from the standard start without its
+    layer, one value per run, and each classical controller's on the same episodes; what :func:`scorecard_plot`
+    draws. Each entry: ``case``, ``reference`` (its name), ``clean`` (every bar met on every run, :func:`case_bars`),
+    ``jerk`` / ``return`` (the policy's, % of the reference's, per run) and ``classical`` (name -> ``(jerk %,
+    return %)``)."""
+    runs, cases = _load_runs(dirs)
+    out = []
+    for c in cases:
+        pool = _classical_pool(runs, c)
+        jerk, ret, met = [], [], []
+        name = None
+        for _, g in runs:
+            x = g["results"][c]
+            name, ref = bar_reference(x, pool)
+            ref = x["idm"] if ref is None else ref
+            std = _standard(x)
+            jerk.append(100.0 * (std["jerk"] / ref["jerk"] - 1.0))
+            ret.append(100.0 * (std["return"] - ref["return"]) / abs(ref["return"]))
+            met.append(case_bars(x, rmse_bar=rmse_bar, others=pool))
+        first = runs[0][1]["results"][c]
+        _, ref = bar_reference(first, pool)
+        ref = first["idm"] if ref is None else ref
+        rows = {"idm": first["idm"], **pool}
+        classical = {k: (100.0 * (r["jerk"] / ref["jerk"] - 1.0), 100.0 * (r["return"] - ref["return"]) / abs(ref["return"]))
+                     for k, r in rows.items() if r["collisions"] == 0 and r is not ref}
+        out.append({"case": c, "reference": name, "clean": all(v is not False for m in met for v in m.values()),
+                    "jerk": jerk, "return": ret, "classical": classical})
+    return out
+
+
+def scorecard_plot(groups: dict, path, *, rmse_bar: float = 0.2, title: str = "") -> None:
+    """One figure of the scorecard (``groups``: group name -> the run directories of that group): per case, the
+    policy's jerk and return against the bars' reference (IDM-as-CAV, or its stand-in where it collides, marked †)
+    as the span over the runs, green where the case meets every bar on every run, red where it does not, and each
+    classical controller that completes every episode as a marker. A bar is met below 0 % (jerk) or above it
+    (return)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    entries, bounds = [], []
+    for g, dirs in groups.items():
+        start = len(entries)
+        entries += scorecard_margins(dirs, rmse_bar=rmse_bar)
+        bounds.append((g, start, len(entries)))
+    n = len(entries)
+    fig, axes = plt.subplots(2, 1, figsize=(max(10.0, 0.42 * n + 2.0), 8.0), sharex=True)
+    markers = {"idm": ("x", "black", "IDM-as-CAV"), "idm:s0=7.0;v0=40.0;b=2.0": ("^", "tab:blue", "IDM_cav (b = 2)"),
+               "cacc": ("s", "tab:purple", "CACC")}
+    for ax, key, label in ((axes[0], "jerk", "jerk − reference's (%)"), (axes[1], "return", "return − reference's (%)")):
+        for i, e in enumerate(entries):
+            lo, hi = min(e[key]), max(e[key])
+            color = "tab:green" if e["clean"] else "tab:red"
+            ax.plot([i, i], [lo, hi], color=color, lw=5, solid_capstyle="butt")
+            ax.plot([i] * len(e[key]), e[key], "_", color=color, ms=13, mew=2.5)  # each run, visible on a narrow span
+            for k, (j, r) in e["classical"].items():
+                m, col, _ = markers.get(k, ("o", "grey", k))
+                ax.plot(i, j if key == "jerk" else r, m, color=col, ms=6, mfc="none" if m == "s" else col)
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+        for g, a, b in bounds:
+            ax.axvline(b - 0.5, color="grey", lw=0.6, ls=":")
+            if key == "jerk":
+                ax.text((a + b - 1) / 2, 1.01, g, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=9)
+    handles = [plt.Line2D([], [], color="tab:green", lw=5, label="the policy (each run, and their span): every bar met"),
+               plt.Line2D([], [], color="tab:red", lw=5, label="the policy: some bar missed")]
+    seen = {k for e in entries for k in e["classical"]}
+    handles += [plt.Line2D([], [], marker=m, color=c, ls="", mfc="none" if m == "s" else c, label=lab)
+                for k, (m, c, lab) in markers.items() if k in seen]
+    fig.legend(handles=handles, fontsize=8, loc="upper center", ncol=len(handles), bbox_to_anchor=(0.5, 0.955),
+               frameon=False)
+    axes[1].set_xticks(range(n))
+    axes[1].set_xticklabels([e["case"] + (" †" if e["reference"] != "idm" else "") for e in entries], rotation=70,
+                            ha="right", fontsize=8)
+    fig.suptitle(title or "Scorecard: jerk and return against IDM-as-CAV († against its stand-in, where it collides)",
+                 fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> str:
     """Print a table of run directories' reports (``python -m mixed_traffic.evaluation.results -h``)."""
     import argparse
