@@ -229,6 +229,41 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
     return cfg, name
 
 
+def parse_set(items) -> list[tuple[str, object]]:
+    """``--set`` items (``transforms.KEY=VALUE``, Hydra's value syntax) as ``(key, value)`` pairs; ``SystemExit`` naming
+    the item unless it sets a key under ``transforms.`` (the deployed chain: a trained policy keeps its env)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser, out = OverridesParser.create(), []
+    for item in items:
+        try:
+            ov = parser.parse_overrides([item])[0]
+            key, value = ov.key_or_group, ov.value()
+        except Exception as e:  # Hydra's parse errors: name the item
+            raise SystemExit(f"--set: {item!r} is invalid ({e}); allowed: transforms.KEY=VALUE") from None
+        if not key.startswith("transforms.") or ov.is_delete() or ov.is_add():
+            raise SystemExit(f"--set: {item!r} is invalid; allowed: transforms.KEY=VALUE, a deployed setting of the "
+                             "run's transforms (the run's env and policy stay as trained)")
+        out.append((key, value))
+    return out
+
+
+def apply_set(run_cfg, pairs):
+    """The run's config with the ``--set`` pairs (:func:`parse_set`) applied; ``SystemExit`` naming a key the run's
+    config does not have (a typo fails before anything runs)."""
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+    OmegaConf.set_struct(cfg, True)
+    for key, value in pairs:
+        if OmegaConf.select(cfg, key, default="<missing>") == "<missing>":
+            raise SystemExit(f"--set: {key} is not a setting of the run's config; allowed: an existing transforms.* key "
+                             "(see the run's config.yaml)")
+        OmegaConf.update(cfg, key, value, merge=False)
+    OmegaConf.set_struct(cfg, False)
+    return cfg
+
+
 def rmse_cell(r: dict) -> str:
     """A row's steady RMSE as the table shows it (:func:`mixed_traffic.evaluation.report.steady_rmse_cell`)."""
     from mixed_traffic.evaluation.report import steady_rmse_cell
@@ -287,6 +322,9 @@ def main(argv=None) -> dict:
                         "(eval.sensor_filter); the margin then counts the estimates' standard deviations")
     p.add_argument("--sensor-filter-model", type=float, nargs=3, default=None, metavar=("GAP", "SPEED", "TAU"),
                    help="the noise the filter assumes, where not the noise drawn (eval.sensor_filter_gap / _speed / _tau)")
+    p.add_argument("--set", nargs="+", default=[], metavar="transforms.KEY=VALUE",
+                   help="deploy-time settings of the run's transforms for the policy and the 'base' baseline (e.g. "
+                        "transforms.residual.drive_off.residual_play=0.2): a variant evaluated without retraining")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -302,6 +340,7 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     all_cases = cases(a.seconds)
     names = case_names(a.cases, all_cases)
+    settings_set = parse_set(a.set)
     for flag, edges, unit in (("--jerk-by-speed", a.jerk_by_speed, "speeds > 0 (m/s)"),
                               ("--jerk-by-time", a.jerk_by_time, "times > 0 (s)")):
         if edges is not None and (any(v <= 0 for v in edges) or sorted(set(edges)) != edges):
@@ -321,6 +360,7 @@ def main(argv=None) -> dict:
 
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
+    run_cfg = apply_set(run_cfg, settings_set)
     v2v, noise = (a.v2v_delay, a.v2v_loss), (*a.sensor_noise, a.sensor_noise_tau, a.sensor_noise_margin)
     try:
         validate_config(case_config(run_cfg, all_cases[names[0]], episodes=1, seconds=a.seconds, seed=a.seed, v2v=v2v,
@@ -331,6 +371,7 @@ def main(argv=None) -> dict:
                 "eval.sensor_noise_margin": "--sensor-noise-margin", "eval.sensor_filter_gap": "--sensor-filter-model GAP",
                 "eval.sensor_filter_speed": "--sensor-filter-model SPEED",
                 "eval.sensor_filter_tau": "--sensor-filter-model TAU"}.get(e.field, e.field)
+        flag = f"--set {e.field}" if any(k == e.field for k, _ in settings_set) else flag
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}
@@ -374,6 +415,7 @@ def main(argv=None) -> dict:
                                                          "seconds": a.seconds, "seed": a.seed,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
                                                          "sensor_noise": rep["sensor_noise"],  # as the evaluation ran it
+                                                         "set": list(a.set),
                                                          "results": results}, indent=2))
     lines = ["| case | controller | collisions | min gap (m) | min gap after warm-up (m) | max head gap (m) | "
              "steady RMSE (m/s) | jerk (m/s3) | return | intervention rate |", "|" + "---|" * 10]

@@ -30,14 +30,16 @@ CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best cl
 # colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same two)
 
 
-def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical) -> list[tuple]:
+def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical,
+         settings=()) -> list[tuple]:
     """``(output directory, ring_generalization.py arguments)`` of every run and group."""
     todo = []
     for i, run in enumerate(runs):
         for g in groups:
             d = out / f"run{i}" / g
             args = ["--checkpoint", run, "--episodes", str(episodes), "--seconds", str(seconds), "--seed",
-                    str(SEEDS[g]), "--cases", g, "--baselines", "idm", *(classical if i == 0 else ()), "--out", str(d)]
+                    str(SEEDS[g]), "--cases", g, "--baselines", "idm", *(classical if i == 0 else ()), "--out", str(d),
+                    *(["--set", *settings] if settings else [])]
             todo.append((d, args))
     return todo
 
@@ -53,6 +55,9 @@ def main(argv=None) -> str:
     p.add_argument("--jobs", type=int, default=1, help="groups evaluated at once (processes)")
     p.add_argument("--rerun", action="store_true", help="run every group again, even where its output is there")
     p.add_argument("--rmse-bar", type=float, default=0.2)
+    p.add_argument("--set", nargs="+", default=[], metavar="transforms.KEY=VALUE",
+                   help="deploy-time settings of the runs' transforms, passed to ring_generalization.py --set (a "
+                        "variant scored without retraining; use a new --out)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     unknown = sorted(set(a.groups) - set(SEEDS))
@@ -66,8 +71,16 @@ def main(argv=None) -> str:
     from mixed_traffic.evaluation.results import clean_cases, generalization_table, scorecard_plot
 
     out = Path(a.out)
-    todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical)
+    todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical, settings=a.set)
     script = str(Path(__file__).with_name("ring_generalization.py"))
+    if not a.rerun:  # a group already there must have been run with the same --set, or it would be scored as this one
+        import json
+
+        for d, _ in todo:
+            f = d / "generalization.json"
+            if f.is_file() and json.loads(f.read_text()).get("set", []) != list(a.set):
+                raise SystemExit(f"--set: {d} was evaluated with --set {json.loads(f.read_text()).get('set', [])}, not "
+                                 f"{list(a.set)}; allowed: a new --out for another variant, or --rerun")
 
     def run(job):
         d, args = job

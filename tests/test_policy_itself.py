@@ -400,6 +400,35 @@ def _tiny_scratch_run(run):
     return run
 
 
+def test_generalization_set_evaluates_a_deployed_variant_without_retraining(tmp_path, benchmark_script):
+    """benchmarks/ring_generalization.py --set transforms.KEY=VALUE: the run's deployed chain with that setting (here
+    the safety layer without its s_max rule, which holds a long start's gap), recorded in generalization.json and
+    named in the tables, which refuse to mix it with the run as trained; a key outside transforms, a typo and a value
+    out of range fail before anything runs, naming the item."""
+    import json
+
+    from mixed_traffic.evaluation.results import generalization_table
+
+    run = _tiny_scratch_run(tmp_path / "run")
+    mod = benchmark_script("ring_generalization")
+    common = ["--checkpoint", str(run), "--episodes", "1", "--seconds", "20", "--cases", "fast_steps", "--baselines", "idm"]
+    plain = mod.main([*common, "--out", str(tmp_path / "plain")])["fast_steps"]
+    varied = mod.main([*common, "--set", "transforms.safety_layer.deployed_s_max=false", "--out", str(tmp_path / "v")])
+    assert plain["policy"]["intervention_rate"] > 0.0 == varied["fast_steps"]["policy"]["intervention_rate"]
+    assert varied["fast_steps"]["idm"] == plain["idm"]  # a classical controller drives without the run's transforms
+    g = json.loads((tmp_path / "v" / "generalization.json").read_text())
+    assert g["set"] == ["transforms.safety_layer.deployed_s_max=false"]
+    assert "deployed with transforms.safety_layer.deployed_s_max=false" in generalization_table([tmp_path / "v"])
+    with pytest.raises(ValueError, match="set .* differs"):
+        generalization_table([tmp_path / "plain", tmp_path / "v"])
+    for bad, said in ((["env.ring_length=300"], "allowed: transforms.KEY=VALUE"),
+                      (["transforms.safety_layer.s_mni=4"], "transforms.safety_layer.s_mni is not a setting"),
+                      (["transforms.safety_layer.s_min=-1"], "--set transforms.safety_layer.s_min")):
+        with pytest.raises(SystemExit, match=said):
+            mod.main([*common, "--set", *bad, "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path, benchmark_script):
     """benchmarks/ring_generalization.py --baselines-with-layer: each baseline runs again behind the
     trained run's safety layer on the same episodes; the layer's work shows in its row (IDM-as-CAV
@@ -824,6 +853,9 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert "cacc" not in json.loads((out / "run1" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
     stamp = (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns
     mod.main(args)  # already there: not run again
+    assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit, match=r"--set: .* was evaluated with --set \[\], not"):  # another variant: a new --out
+        mod.main([*args, "--set", "transforms.safety_layer.deployed_s_max=false"])
     assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match=r"--groups: \['fresh_9'\] are not groups"):
         mod.main(["--runs", str(run), "--groups", "fresh_9", "--out", str(tmp_path / "bad")])

@@ -301,12 +301,14 @@ def _load_runs(dirs) -> tuple[list[tuple[str, dict]], list[str]]:
         g.setdefault("v2v", {"delay": 0.0, "loss": 0.0})
         g.setdefault("sensor_noise", {"gap": 0.0, "speed": 0.0, "tau": 0.0, "margin": 0.0})  # and exact measurements
         g["sensor_noise"].setdefault("filter", False)  # and no filter
+        g.setdefault("set", [])  # and the run's own transforms
     ref_dir, ref = runs[0]
     for d, g in runs[1:]:
-        for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise"):
+        for key in ("seed", "episodes", "seconds", "v2v", "sensor_noise", "set"):
             if g.get(key) != ref.get(key):
                 raise ValueError(f"--generalization: {key} {g.get(key)!r} of {d!r} differs from {ref.get(key)!r} of "
-                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes, link and noise")
+                                 f"{ref_dir!r}; allowed: runs evaluated on the same episodes, link and noise, with "
+                                 "the same --set")
     cases = [c for c in ref["results"] if all(c in g["results"] for _, g in runs)]
     if not cases:
         raise ValueError("--generalization: the runs have no case in common")
@@ -357,7 +359,8 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
                 + (f" correlated over {noise['tau']:g} s" if noise.get("tau") else "")
                 + (", filtered" if noise.get("filter") else "")
                 + (f", the layer's and envelope's margin {noise['margin']:g} standard deviations" if noise.get("margin") else "")
-                if noise["gap"] or noise["speed"] else "") + ".", "",
+                if noise["gap"] or noise["speed"] else "")
+             + (f"; deployed with {' '.join(ref['set'])}" if ref["set"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     clean, notes = 0, []
     for c in cases:
