@@ -149,6 +149,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.drive_off.standstill": Real(0, 5, lo_open=True),
     "transforms.residual.drive_off.when": OneOf(("always", "deploy")),
     "transforms.residual.drive_off.residual_play": Real(0, 3, lo_open=True, optional=True),
+    "transforms.residual.drive_off.follow": Real(0, 1.5, lo_open=True, optional=True),
+    "transforms.residual.drive_off.follow_above": Real(0, 3),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),

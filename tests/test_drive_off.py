@@ -248,3 +248,72 @@ def test_a_partial_reset_keeps_the_other_rows_held_residual():
                        batch_size=[2])
     out = res._reset(state, TensorDict({}, batch_size=[2]))
     torch.testing.assert_close(out["residual", "held"], torch.tensor([[0.0], [0.4]]))
+
+
+# the floor from the leader's drive-off (DriveOffCap(follow=...), transforms.residual.drive_off.follow)
+
+def test_the_follow_floor_keeps_up_with_the_leaders_drive_off_and_acts_nowhere_else():
+    """A policy that asks for nothing (IDM at weight 0: the law's command) behind a head that stops and drives off at
+    2 m/s^2: with follow 0.9 the CAV accelerates at least 0.9 of the head's acceleration (or the cap, where lower)
+    while the cap is engaged and the head accelerates, and the run is the plain cap's to the bit before the stop."""
+    _, plain = _idm_rollout(600, cap=DriveOffCap(), **STOP)
+    _, follow = _idm_rollout(600, cap=DriveOffCap(follow=0.9), **STOP)
+    torch.testing.assert_close(plain["next", "cav", "accel"][0, :170], follow["next", "cav", "accel"][0, :170], atol=0, rtol=0)
+    a_l = follow["cav", "leader_accel"][0, :, 0]
+    engaged = follow["drive_off", "engaged"][0, :, 0] & follow["next", "drive_off", "engaged"][0, :, 0]
+    on = engaged & (a_l > 0.3) & (follow["cav", "speed"][0, :, 0] > 0.05)  # moving: the env executes the command
+    assert int(on.sum()) > 20  # the head's drive-off, 23.5-31 s
+    executed = follow["next", "cav", "accel"][0, :, 0]
+    cap = DriveOffCap().cap(*(follow[k][0, :, 0] for k in (("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"))))[0]
+    floor = torch.minimum(0.9 * a_l, cap)
+    assert bool((executed[on] >= floor[on] - 1e-4).all())
+    below = plain["next", "cav", "accel"][0, :, 0][on] < floor[on] - 0.05
+    assert bool(below.any())  # the plain cap's drive-off starts slower: the floor changed something
+    speed_gap = follow["next", "cav", "leader_speed"][0, 235:310, 0] - follow["next", "cav", "speed"][0, 235:310, 0]
+    plain_gap = plain["next", "cav", "leader_speed"][0, 235:310, 0] - plain["next", "cav", "speed"][0, 235:310, 0]
+    assert float(speed_gap.max()) < float(plain_gap.max())  # it keeps closer to the head's speed through the drive-off
+
+
+def test_the_follow_floor_needs_the_leaders_acceleration_and_valid_settings():
+    cap = DriveOffCap(follow=0.9)
+    a = torch.zeros(1)
+    with pytest.raises(ValueError, match="follow needs the leader's acceleration"):
+        cap.apply(a, a + 10, a, a, torch.ones(1, dtype=torch.bool), a)
+    for kw, said in (({"follow": 0.0}, r"follow=0.0 is invalid; allowed: None or in \(0, 1.5\]"),
+                     ({"follow": 2.0}, r"follow=2.0 is invalid"),
+                     ({"follow_above": -0.1}, r"follow_above=-0.1 is invalid; allowed: >= 0")):
+        with pytest.raises(ValueError, match=said):
+            DriveOffCap(**kw)
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", "transforms.residual.drive_off.follow=0.9"]))
+    env = make_transformed_env(cfg, num_envs=1, seed=0, deploy=True)
+    assert next(t for t in env.transform if isinstance(t, DriveOffCap)).follow == 0.9
+    with pytest.raises(ConfigError, match=r"transforms.residual.drive_off.follow: 1.6 is out of range"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", "transforms.residual.drive_off.follow=1.6"]))
+    # the replayed law under the cap reads the leader's acceleration when the cap follows
+    from mixed_traffic.evaluation.replay import DriveOffLaw
+    law = DriveOffLaw(make_classic_policy("idm", make_env("ring", batch_size=1, seed=0)).module, cap)
+    assert law.reads_leader_accel
+    law.reset_state()
+    args = (torch.tensor([1.5]), torch.tensor([0.2]), torch.tensor([0.3]))  # both stopped, 1.5 m apart: IDM brakes
+    assert float(DriveOffLaw(law.law, DriveOffCap())(*args)) < 0.0
+    out = law(*args, torch.tensor([2.0]))  # the head drives off at 2 m/s^2: the floor, here at the cap
+    assert float(out) == pytest.approx(min(0.9 * 2.0, 1.0 * (0.3 + 0.15 - 0.2)), abs=1e-6)
+
+
+def test_the_follow_floor_never_pushes_past_the_stopping_rule():
+    """A leader's acceleration read as +2 m/s^2 while the CAV is 5.5 m behind it at 10 m/s (a late V2V message, say):
+    unguarded, the floor would push the CAV on; guarded, the command stays within the stopping rule that keeps 5 m
+    whatever the leader does, as the safety layer's own bound."""
+    from transforms.safety_layer import safe_accel_upper
+
+    state = dict(gap=torch.tensor([5.5]), speed=torch.tensor([10.0]), leader_speed=torch.tensor([10.0]))
+    engaged, calm, a = torch.ones(1, dtype=torch.bool), torch.zeros(1), torch.tensor([-2.0])  # the law brakes
+    free = DriveOffCap(follow=0.9).apply(a, *state.values(), engaged, calm, torch.tensor([2.0]))[0]
+    guarded = DriveOffCap(follow=0.9, guard=(5.0, 3.0, 3.0)).apply(a, *state.values(), engaged, calm, torch.tensor([2.0]))[0]
+    bound = safe_accel_upper(*state.values(), s_min=5.0, dt=0.1, brake=3.0, leader_brake=3.0)
+    assert float(free) > float(bound) and float(guarded) <= float(bound) + 1e-6
+    with pytest.raises(ValueError, match=r"guard=\(5.0, 0.0, 3.0\) is invalid"):
+        DriveOffCap(follow=0.9, guard=(5.0, 0.0, 3.0))
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", "transforms.residual.drive_off.follow=0.9"]))
+    cap = next(t for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=True).transform if isinstance(t, DriveOffCap))
+    assert cap.guard[:2] == (5.0, 3.0)  # the base's stop_gap and the CAV's braking bound

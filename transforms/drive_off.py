@@ -11,6 +11,13 @@ noisy speeds does not take a dip of its own measurement for a stop) and releases
 matched its leader's speed (within ``match``) and the command has stayed under the cap for ``release`` s: then
 the law drives as before. A command below the cap passes untouched; braking is never capped.
 
+With ``follow`` set, the leader's own drive-off also sets a floor: while the cap is engaged and the leader
+accelerates by more than ``follow_above``, the command is at least ``min(follow * a_leader, cap)`` (the leader's
+acceleration ``("cav", "leader_accel")``, as CACC reads it), so the CAV keeps up with a long drive-off from its
+start instead of catching up on it later (off by default; ``docs/results.md``, "Following the leader's drive-off").
+A late or wrong reading of the leader's acceleration must not push the CAV into it: with ``guard`` the floor never
+exceeds the safety layer's stopping bound (:func:`transforms.safety_layer.safe_accel_upper`).
+
 It stands between the safety layer and the residual in the chain (``transforms.residual.drive_off``), so it
 caps the sum of the base and the learned residual, and the safety layer still has the last word. Its state
 travels in the tensordict (``("drive_off", "engaged")``, ``("drive_off", "calm")``), so a row reset on its own
@@ -28,7 +35,7 @@ from torchrl.envs.transforms import Transform
 
 from transforms.specs import carry_to_next, entries_or_none, kept_rows
 
-GAP, SPEED, LEADER_SPEED = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")
+GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
 
 
@@ -46,6 +53,11 @@ class DriveOffCap(Transform):
         standstill: the speed (m/s, > 0) below which the car and its leader engage the cap.
         match: how close below its leader's speed (m/s, > 0) counts as matched.
         dt: the env's step (s, > 0).
+        follow: while engaged and the leader accelerates, the command's floor as a share of the leader's
+            acceleration (``(0, 1.5]``; None: no floor).
+        follow_above: the leader's acceleration (m/s^2, >= 0) above which the floor holds.
+        guard: ``(stop_gap, brake, leader_brake)`` (m, m/s^2, m/s^2): the floor stays within the stopping rule that
+            keeps ``stop_gap`` whatever the leader does within ``leader_brake``; None: unguarded.
         action_key: the executed acceleration (default ``"action"``).
 
     Example:
@@ -67,19 +79,30 @@ class DriveOffCap(Transform):
 
     def __init__(self, gain: float = 1.0, overspeed: float = 0.15, gaps: tuple[float, float] = (34.0, 38.0),
                  accel: float = 1.5, release: float = 5.0, standstill: float = 0.5, match: float = 0.3, *,
-                 dt: float = 0.1, action_key: NestedKey = "action"):
+                 dt: float = 0.1, follow: float | None = None, follow_above: float = 0.3, guard=None,
+                 action_key: NestedKey = "action"):
         for name, value in (("gain", gain), ("accel", accel), ("release", release), ("standstill", standstill),
                             ("match", match), ("dt", dt)):
             if not float(value) > 0.0:
                 raise ValueError(f"DriveOffCap: {name}={value!r} is invalid; allowed: > 0")
         if not float(overspeed) >= 0.0:
             raise ValueError(f"DriveOffCap: overspeed={overspeed!r} is invalid; allowed: >= 0 (m/s)")
+        if follow is not None and not 0.0 < float(follow) <= 1.5:
+            raise ValueError(f"DriveOffCap: follow={follow!r} is invalid; allowed: None or in (0, 1.5]")
+        if not float(follow_above) >= 0.0:
+            raise ValueError(f"DriveOffCap: follow_above={follow_above!r} is invalid; allowed: >= 0 (m/s^2)")
         if not (len(gaps) == 2 and 0.0 <= float(gaps[0]) < float(gaps[1])):
             raise ValueError(f"DriveOffCap: gaps={gaps!r} is invalid; allowed: (from, full) with 0 <= from < full (m)")
         super().__init__(in_keys=[], out_keys=[], in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.gain, self.overspeed, self.accel = float(gain), float(overspeed), float(accel)
         self.gaps = (float(gaps[0]), float(gaps[1]))
         self.release, self.standstill, self.match, self.dt = float(release), float(standstill), float(match), float(dt)
+        self.follow = None if follow is None else float(follow)
+        self.follow_above = float(follow_above)
+        if guard is not None and not (len(guard) == 3 and float(guard[0]) >= 0 and float(guard[1]) > 0):
+            raise ValueError(f"DriveOffCap: guard={guard!r} is invalid; allowed: None or (stop_gap >= 0, brake > 0, "
+                             "leader_brake > 0)")
+        self.guard = None if guard is None else (float(guard[0]), float(guard[1]), guard[2])
         self.action_key = action_key
 
     def cap(self, gap: torch.Tensor, speed: torch.Tensor,
@@ -92,10 +115,12 @@ class DriveOffCap(Transform):
         return cap, lift
 
     def apply(self, a: torch.Tensor, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
-              engaged: torch.Tensor, calm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              engaged: torch.Tensor, calm: torch.Tensor,
+              leader_accel: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of the rule on tensors of one shape: ``(executed, engaged, calm)`` after the command ``a``
         and the state ``(engaged, calm)`` before it (what the transform does to a tensordict; a replayed law
-        calls it directly, :class:`mixed_traffic.evaluation.replay.DriveOffLaw`)."""
+        calls it directly, :class:`mixed_traffic.evaluation.replay.DriveOffLaw`); ``leader_accel``: needed
+        with ``follow``."""
         engaged = engaged | ((speed < self.standstill) & (leader_speed < self.standstill))  # both stopped
         cap, lift = self.cap(gap, speed, leader_speed)
         capped = torch.minimum(a, cap)
@@ -103,6 +128,18 @@ class DriveOffCap(Transform):
         calm = torch.where(engaged & (speed >= leader_speed - self.match) & (a <= cap), calm + self.dt,
                            torch.zeros_like(a))
         released = calm >= self.release - 1e-9
+        if self.follow is not None:
+            if leader_accel is None:
+                raise ValueError("DriveOffCap: follow needs the leader's acceleration (leader_accel)")
+            floor = torch.minimum(self.follow * leader_accel, cap)
+            if self.guard is not None:
+                from transforms.safety_layer import safe_accel_upper
+
+                stop_gap, brake, leader_brake = self.guard
+                floor = torch.minimum(floor, safe_accel_upper(gap, speed, leader_speed, s_min=stop_gap, dt=self.dt,
+                                                              brake=brake, leader_brake=leader_brake))
+            executed = torch.where(engaged & ~released & (leader_accel > self.follow_above),
+                                   torch.maximum(executed, floor), executed)
         return executed, engaged & ~released, torch.where(released, torch.zeros_like(calm), calm)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -115,8 +152,15 @@ class DriveOffCap(Transform):
             raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "
                                "TransformedEnv before stepping it")
         gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
+        a_l = None
+        if self.follow is not None:
+            a_l = tensordict.get(LEADER_ACCEL, None)
+            if a_l is None:
+                raise RuntimeError("DriveOffCap: follow reads the leader's acceleration ('cav', 'leader_accel'), "
+                                   "which the step's input lacks; allowed: an env that writes it (the ring's does)")
+            a_l = a_l.to(a.dtype).reshape(a.shape)
         executed, engaged_next, calm_next = self.apply(a, gap, v, v_l, engaged.reshape(a.shape),
-                                                       calm.to(a.dtype).reshape(a.shape))
+                                                       calm.to(a.dtype).reshape(a.shape), a_l)
         tensordict.set(self.action_key, executed)
         tensordict.set(ENGAGED, engaged_next.reshape(engaged.shape))
         tensordict.set(CALM, calm_next.to(calm.dtype).reshape(calm.shape))
@@ -151,5 +195,6 @@ class DriveOffCap(Transform):
         return observation_spec
 
     def __repr__(self) -> str:
+        follow = "" if self.follow is None else f", follow={self.follow} above {self.follow_above}"
         return (f"{type(self).__name__}(gain={self.gain}, overspeed={self.overspeed}, gaps={self.gaps}, "
-                f"accel={self.accel}, release={self.release}, standstill={self.standstill})")
+                f"accel={self.accel}, release={self.release}, standstill={self.standstill}{follow})")

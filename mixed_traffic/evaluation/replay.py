@@ -124,17 +124,18 @@ class DriveOffLaw(torch.nn.Module):
 
     @property
     def reads_leader_accel(self) -> bool:
-        return reads_leader_accel(self.law)
+        return reads_leader_accel(self.law) or self.cap.follow is not None
 
     def reset_state(self) -> None:
         self._engaged = self._calm = None
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
-        a = self.law(gap, speed, leader_speed, *extra)
+        a = self.law(gap, speed, leader_speed, *(extra if reads_leader_accel(self.law) else ()))
         if self._engaged is None or self._engaged.shape != a.shape:
             self._engaged, self._calm = torch.zeros_like(a, dtype=torch.bool), torch.zeros_like(a)
+        leader_accel = extra[0].to(a) if self.cap.follow is not None else None
         executed, self._engaged, self._calm = self.cap.apply(a, gap.to(a), speed.to(a), leader_speed.to(a),
-                                                             self._engaged, self._calm)
+                                                             self._engaged, self._calm, leader_accel)
         return executed
 
 

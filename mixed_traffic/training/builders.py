@@ -217,8 +217,17 @@ def drive_off_cap(rcfg, env):
     d = rcfg.get("drive_off")
     if d is None or d.get("gain") is None:
         return None
+    guard = None
+    if d.get("follow") is not None:  # the floor stays inside the stopping rule of the base's envelope (or 5 m)
+        from mixed_traffic.controllers.classic import action_bounds
+        from transforms.safety_layer import scenario_leader_brake
+
+        stop_gap = rcfg.get("stop_gap")
+        guard = (5.0 if stop_gap is None else float(stop_gap), -float(action_bounds(env)[0]),
+                 scenario_leader_brake(env.scenario))
     return DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
-                       standstill=d.standstill, dt=float(env.scenario.dt))
+                       standstill=d.standstill, dt=float(env.scenario.dt), follow=d.get("follow"),
+                       follow_above=d.get("follow_above", 0.3), guard=guard)
 
 
 def _residual_idm(tcfg, env, *, deploy: bool = False):
