@@ -62,6 +62,15 @@ cap is engaged (``transforms.residual.drive_off.residual_play``) was evaluated, 
 - ``brake_from_17``: ``emergency_brake`` from 17 m/s down to 0 m/s;
 - ``stop_and_go_11_humans_50pct``: as ``stop_and_go`` at 11 m/s with the humans' parameters spread +-50 %.
 
+Three more (``--cases random_stops``), whose stops are drawn per episode (``random_stop_and_go``): every fixed
+case above with a deterministic head (stop-and-go, braking, sine, EUDC) gives the same episodes at every
+evaluation seed, so a rule picked on one at a tuning seed was picked on the episodes it is scored on. Here each
+seed draws other stops:
+
+- ``random_stops``: holds of 6-15 s at 8-16 m/s, stands of 3-10 s, braking and driving off at 1.5-2.5 m/s^2;
+- ``random_stops_fast``: holds of 8-15 s at 16-24 m/s, stands of 3-10 s, at 2-3 m/s^2;
+- ``random_stops_wide``: holds of 5-20 s at 6-22 m/s, stands of 2-15 s, at 1.5-3 m/s^2.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base with the learned residual at zero) runs
@@ -160,6 +169,17 @@ def cases(seconds: float) -> dict[str, dict]:
         "stop_and_go_11_humans_50pct": {"profile": "piecewise", "kwargs": stop_and_go(seconds, v=11.0, hold=10.0,
                                                                                           stop=6.0),
                                         "eval": {"hdv_param_noise": 0.5}},
+        # random_stops: stops drawn per episode (profiles.RandomStopAndGo), so the evaluation seed draws other
+        # stops; the fixed stop cases above are the same episodes at every seed
+        "random_stops": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 16.0, "hold_min": 6.0, "hold_max": 15.0, "stop_min": 3.0, "stop_max": 10.0,
+            "rate_min": 1.5, "rate_max": 2.5}},
+        "random_stops_fast": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 16.0, "v_high": 24.0, "hold_min": 8.0, "hold_max": 15.0, "stop_min": 3.0, "stop_max": 10.0,
+            "rate_min": 2.0, "rate_max": 3.0}},
+        "random_stops_wide": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 6.0, "v_high": 22.0, "hold_min": 5.0, "hold_max": 20.0, "stop_min": 2.0, "stop_max": 15.0,
+            "rate_min": 1.5, "rate_max": 3.0}},
     }
 
 
@@ -172,8 +192,10 @@ FRESH_3 = ("stop_and_go_12_slow", "stop_and_go_18_long_stop", "brake_from_20", "
            "stop_and_go_15_humans_30pct")
 FRESH_4 = ("stop_and_go_14_short_hold", "stop_and_go_16_gentle", "stop_and_go_13_ring_300", "brake_from_17",
            "stop_and_go_11_humans_50pct")
-GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4),
-          "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4}
+RANDOM_STOPS = ("random_stops", "random_stops_fast", "random_stops_wide")
+GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS),
+          "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
+          "random_stops": RANDOM_STOPS}
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:

@@ -1,7 +1,7 @@
 """The scorecard of trained ring policies on every case they never trained on, in one command.
 
 Runs ``ring_generalization.py`` for each run (one per seed) on each group of cases at the group's own
-evaluation seed (held_out 2000, fresh 5000, fresh_2 7000, fresh_3 8000, fresh_4 9000), IDM-as-CAV beside every run and
+evaluation seed (held_out 2000, fresh 5000, fresh_2 7000, fresh_3 8000, fresh_4 9000, random_stops 10000), IDM-as-CAV beside every run and
 the classical controllers of ``--classical`` beside the first run only (they do not depend on the policy:
 the same episodes in every run). Then prints and writes ``OUT/scorecard.md``: per group, the table of
 ``python -m mixed_traffic.evaluation.results --generalization ... --bars`` (which acceptance bars each case
@@ -25,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000, "fresh_4": 9000}
+SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000, "fresh_4": 9000, "random_stops": 10000}
 CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best classical; CACC. They stand in for a
 # colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same two)
 

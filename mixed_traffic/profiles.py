@@ -138,6 +138,65 @@ class RandomRamps:
 
 
 @dataclass(frozen=True)
+class RandomStopAndGo:
+    """Stop-and-go with every part drawn per episode: the head holds a speed from U[v_low, v_high] for
+    U[hold_min, hold_max] s, brakes to a standstill at U[rate_min, rate_max] m/s^2, stands U[stop_min, stop_max] s,
+    drives off at a rate from the same range to the next speed, and so on (the head's own bounds clip what it can
+    do). The first speed is ``v_init`` when given. Unlike a fixed stop-and-go profile (``piecewise``), each
+    evaluation seed draws other stops, so a seed that tunes a rule and one that tests it see different episodes.
+    Parameters per episode: ``[t_0 .. t_K, v_0 .. v_K]`` knots, as :class:`RandomRamps`.
+
+        >>> import torch
+        >>> p = RandomStopAndGo(v_low=10.0, v_high=10.0, hold_min=5.0, hold_max=5.0, stop_min=2.0, stop_max=2.0,
+        ...                     rate_min=2.0, rate_max=2.0, horizon=20.0)
+        >>> knots = p.sample(1)
+        >>> [float(p.speed(torch.tensor([t]), knots)) for t in (0.0, 5.0, 7.5, 10.0, 11.0, 12.0, 14.5)]
+        [10.0, 10.0, 5.0, 0.0, 0.0, 0.0, 5.0]
+    """
+
+    v_low: float = 8.0
+    v_high: float = 16.0
+    hold_min: float = 6.0
+    hold_max: float = 15.0
+    stop_min: float = 3.0
+    stop_max: float = 10.0
+    rate_min: float = 1.5
+    rate_max: float = 2.5
+    horizon: float = 500.0
+    v_init: float | None = None
+
+    def __post_init__(self):
+        for lo, hi, names in ((self.v_low, self.v_high, ("v_low", "v_high")),
+                              (self.hold_min, self.hold_max, ("hold_min", "hold_max")),
+                              (self.stop_min, self.stop_max, ("stop_min", "stop_max")),
+                              (self.rate_min, self.rate_max, ("rate_min", "rate_max"))):
+            if not 0 < lo <= hi:
+                raise ValueError(f"random_stop_and_go: {names[0]}={lo}, {names[1]}={hi} are invalid; allowed: "
+                                 f"0 < {names[0]} <= {names[1]}")
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        n = int(math.ceil(self.horizon / (self.hold_min + self.stop_min))) + 1  # cycles: hold, brake, stand, drive off
+
+        def draw(lo, hi, k):
+            return lo + (hi - lo) * torch.rand(batch, k, generator=generator)
+
+        v = draw(self.v_low, self.v_high, n + 1)
+        if self.v_init is not None:
+            v[:, 0] = self.v_init
+        hold, stand = draw(self.hold_min, self.hold_max, n), draw(self.stop_min, self.stop_max, n)
+        brake, drive = draw(self.rate_min, self.rate_max, n), draw(self.rate_min, self.rate_max, n)
+        # knots per cycle k: end of hold (v_k), standstill (0), end of the stand (0), at speed v_{k+1}
+        durations = torch.stack([hold, v[:, :-1] / brake, stand, v[:, 1:] / drive], dim=-1).flatten(1)
+        times = torch.cat([torch.zeros(batch, 1), torch.cumsum(durations, dim=1)], dim=1)
+        zeros = torch.zeros_like(hold)
+        speeds = torch.cat([v[:, :1], torch.stack([v[:, :-1], zeros, zeros, v[:, 1:]], dim=-1).flatten(1)], dim=1)
+        return torch.cat([times, speeds], dim=1)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        return RandomRamps.speed(self, t, params)
+
+
+@dataclass(frozen=True)
 class RandomPerturbation:
     """Persistent random perturbation around ``v_star`` of amplitude ``amplitude``.
 
@@ -288,6 +347,7 @@ PROFILES = {
     "random_steps": RandomSteps,
     "random_perturbation": RandomPerturbation,
     "random_ramps": RandomRamps,
+    "random_stop_and_go": RandomStopAndGo,
     "sine": Sine,
     "piecewise": PiecewiseLinear,
     "deeplcc_brake": deeplcc_brake,
@@ -310,5 +370,5 @@ def make_profile(name: str, **kwargs):
         raise ValueError(f"profile {name!r}: bad arguments {sorted(kwargs)}; allowed: {allowed}") from e
 
 
-__all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomPerturbation", "Sine",
+__all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomStopAndGo", "RandomPerturbation", "Sine",
            "PiecewiseLinear", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

@@ -185,7 +185,7 @@ class TrafficScenario:
 
     def make_profile(self):
         kwargs = dict(self.profile_kwargs)
-        if self.profile in ("random_steps", "random_perturbation", "random_ramps"):
+        if self.profile in ("random_steps", "random_perturbation", "random_ramps", "random_stop_and_go"):
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)
 

@@ -202,6 +202,25 @@ def test_random_ramps_hold_and_ramp_within_range():
         make_profile("random_ramps", v_low=10.0, v_high=5.0)
 
 
+def test_random_stop_and_go_stops_and_drives_off_within_its_ranges():
+    prof = make_profile("random_stop_and_go", v_low=8.0, v_high=16.0, hold_min=6.0, hold_max=15.0, stop_min=3.0,
+                        stop_max=10.0, rate_min=1.5, rate_max=2.5, horizon=200.0)
+    p = prof.sample(8, torch.Generator().manual_seed(0))
+    v = torch.stack([prof.speed(torch.full((8,), float(x)), p) for x in torch.arange(0, 200, 0.1)], 1)
+    assert float(v.min()) == 0.0 and float(v.max()) <= 16.0 + 1e-4
+    assert bool((v[:, 0] >= 8.0).all())  # it starts at a cruising speed
+    rate = (v[:, 1:] - v[:, :-1]).abs() / 0.1
+    assert float(rate.max()) <= 2.5 + 1e-3
+    standing = v < 1e-6
+    starts = standing[:, 1:] & ~standing[:, :-1]
+    assert bool((starts.sum(1) >= 5).all())  # several stops in 200 s, each episode its own
+    assert float(v.std(0).max()) > 3.0
+    for bad, said in (({"v_low": 0.0}, "v_low=0.0, v_high=16.0 are invalid"),
+                      ({"stop_min": 5.0, "stop_max": 4.0}, "stop_min=5.0, stop_max=4.0 are invalid")):
+        with pytest.raises(ValueError, match=said):
+            make_profile("random_stop_and_go", **bad)
+
+
 # ----------------------------------------------------------------------------- evaluation without the layer
 SHORT = ["eval.episodes=2", "eval.episode_seconds=30.0", "eval.warmup_seconds=5.0", "eval.settle_seconds=3.0",
          "eval.profiles=[random_steps,emergency_brake]", "eval.profile_kwargs.emergency_brake.start=10.0"]
@@ -758,7 +777,7 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
     with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3', "
-                                         r"'fresh_4'\]"):
+                                         r"'fresh_4', 'random_stops'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
@@ -787,6 +806,15 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         v = head_speeds(name, 9000)
         assert float(v.min()) == 0.0 and float(v.max()) <= 20.0, name
         assert name == "brake_from_17" or float(v[-300:].max()) > 10.0, name
+    # random_stops: the head stops and drives off several times in every episode, and another seed draws other stops
+    # (a fixed stop case gives the same head at every seed: a tuning seed would tune on the scored episodes)
+    for name in mod.GROUPS["random_stops"]:
+        v, w = head_speeds(name, 10000), head_speeds(name, 3000)
+        stops = ((v[1:] < 1e-6) & (v[:-1] >= 1e-6)).sum(0)
+        assert bool((stops >= 3).all()) and float(v.max()) <= 24.0 + 1e-4, name
+        assert float((v - w).abs().max()) > 5.0, name
+    fixed = head_speeds("stop_and_go_15", 3000)
+    assert torch.equal(fixed, head_speeds("stop_and_go_15", 2000))
 
 
 def test_jerk_shares_by_speed_add_up_to_the_reports_mean_jerk():
