@@ -252,38 +252,25 @@ def named_config(run_cfg, name: str, *, episodes: int, seconds: float, seed: int
 
 
 def parse_set(items) -> list[tuple[str, object]]:
-    """``--set`` items (``transforms.KEY=VALUE``, Hydra's value syntax) as ``(key, value)`` pairs; ``SystemExit`` naming
-    the item unless it sets a key under ``transforms.`` (the deployed chain: a trained policy keeps its env)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
+    """``--set`` items as ``(key, value)`` pairs (:func:`mixed_traffic.validation.parse_deploy_overrides`);
+    ``SystemExit`` naming the item."""
+    from mixed_traffic.validation import ConfigError, parse_deploy_overrides
 
-    parser, out = OverridesParser.create(), []
-    for item in items:
-        try:
-            ov = parser.parse_overrides([item])[0]
-            key, value = ov.key_or_group, ov.value()
-        except Exception as e:  # Hydra's parse errors: name the item
-            raise SystemExit(f"--set: {item!r} is invalid ({e}); allowed: transforms.KEY=VALUE") from None
-        if not key.startswith("transforms.") or ov.is_delete() or ov.is_add():
-            raise SystemExit(f"--set: {item!r} is invalid; allowed: transforms.KEY=VALUE, a deployed setting of the "
-                             "run's transforms (the run's env and policy stay as trained)")
-        out.append((key, value))
-    return out
+    try:
+        return parse_deploy_overrides(items)
+    except ConfigError as e:
+        raise SystemExit(f"--set {e}") from None
 
 
 def apply_set(run_cfg, pairs):
-    """The run's config with the ``--set`` pairs (:func:`parse_set`) applied; ``SystemExit`` naming a key the run's
-    config does not have (a typo fails before anything runs)."""
-    from omegaconf import OmegaConf
+    """The run's config with the ``--set`` pairs applied (:func:`mixed_traffic.validation.with_deploy_overrides`);
+    ``SystemExit`` naming a key the run's config does not have or a value out of range."""
+    from mixed_traffic.validation import ConfigError, with_deploy_overrides
 
-    cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
-    OmegaConf.set_struct(cfg, True)
-    for key, value in pairs:
-        if OmegaConf.select(cfg, key, default="<missing>") == "<missing>":
-            raise SystemExit(f"--set: {key} is not a setting of the run's config; allowed: an existing transforms.* key "
-                             "(see the run's config.yaml)")
-        OmegaConf.update(cfg, key, value, merge=False)
-    OmegaConf.set_struct(cfg, False)
-    return cfg
+    try:
+        return with_deploy_overrides(run_cfg, pairs)
+    except ConfigError as e:
+        raise SystemExit(f"--set {e}") from None
 
 
 def rmse_cell(r: dict) -> str:

@@ -277,6 +277,44 @@ def _check_classic_params(cfg: DictConfig, prefix: str) -> None:
             Real()(f"{prefix}.params.{k}", v)
 
 
+def parse_deploy_overrides(items) -> list[tuple[str, object]]:
+    """``transforms.KEY=VALUE`` items (Hydra's value syntax) as ``(key, value)`` pairs: the deploy-time settings of a
+    trained run's transforms (``mt-eval checkpoint=...``, ``ring_generalization.py --set``). ``ConfigError`` naming
+    the item unless it sets a key under ``transforms.``: a trained policy keeps the env it was trained on.
+
+        >>> parse_deploy_overrides(["transforms.residual.drive_off.follow=0.9"])
+        [('transforms.residual.drive_off.follow', 0.9)]
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser, out = OverridesParser.create(), []
+    for item in items:
+        try:
+            ov = parser.parse_overrides([item])[0]
+        except Exception as e:  # Hydra's parse errors: name the item
+            raise ConfigError(str(item), f"cannot be parsed ({e})", "transforms.KEY=VALUE") from None
+        if not ov.key_or_group.startswith("transforms.") or ov.is_delete() or ov.is_add():
+            raise ConfigError(str(item), "not a deployed setting of the run's transforms",
+                              "transforms.KEY=VALUE (the run's env and policy stay as trained)")
+        out.append((ov.key_or_group, ov.value()))
+    return out
+
+
+def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
+    """A copy of a trained run's config with the pairs of :func:`parse_deploy_overrides` set, validated
+    (:func:`validate_config`); ``ConfigError`` naming a key the run's config does not have (a typo fails before
+    anything runs) or a value out of range."""
+    cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+    for key, value in pairs:
+        if OmegaConf.select(cfg, key, default="<missing>") == "<missing>":
+            raise ConfigError(key, "not a setting of the run's config",
+                              "an existing transforms.* key (see the run's config.yaml)")
+        OmegaConf.update(cfg, key, value, merge=False)
+    if pairs:
+        validate_config(cfg)
+    return cfg
+
+
 def validate_config(cfg: DictConfig) -> DictConfig:
     """Check every rule of :data:`CONFIG_RULES` present in ``cfg`` and that all floats are finite."""
     for path, node in _walk(cfg):

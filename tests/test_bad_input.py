@@ -193,6 +193,31 @@ def test_4_eval_refuses_env_overrides_of_a_checkpoint(finished_run):
     check_eval_overrides(compose(["controller=idm", "env.weight_v=3.0"]), ["env.weight_v=3.0"])  # no checkpoint
 
 
+def test_4_eval_deploys_a_checkpoint_with_its_transforms_overridden_not_silently_dropped(finished_run, tmp_path):
+    """``mt-eval checkpoint=RUN transforms.KEY=VALUE``: a checkpoint deploys with its own transforms, so such an
+    override used to be dropped without a word; it now changes them for this evaluation, and the report names it.
+    A key the run's config does not have, or a transforms group, is refused naming it."""
+    from mixed_traffic.apps.evaluate import run_eval
+
+    base = [f"checkpoint={finished_run}", f"out_dir={tmp_path}/o", *SHORT_EVAL]
+    over = ["transforms.safety_layer.s_min=6.0"]
+    rep = run_eval(compose(base + over), base + over)
+    assert rep["deploy_overrides"] == {"transforms.safety_layer.s_min": 6.0}
+    assert rep["policy"].endswith("deployed with transforms.safety_layer.s_min=6.0")
+    if "safety_layer" in rep:
+        assert rep["safety_layer"]["s_min"] == 6.0
+    plain = run_eval(compose(base), base)
+    assert "deploy_overrides" not in plain and not plain["policy"].endswith("6.0")
+    with pytest.raises(ConfigError, match=r"^transforms.safety_layer.s_mni: not a setting of the run's config"):
+        run_eval(compose(base), base + ["transforms.safety_layer.s_mni=6.0"])
+    with pytest.raises(ConfigError, match=r"^transforms=reward: not a deployed setting of the run's transforms"):
+        run_eval(compose(base), base + ["transforms=reward"])
+    from mixed_traffic.evaluation import evaluate_and_report
+    with pytest.raises(ConfigError, match=r"^transforms: deploy-time overrides apply to a checkpoint"):
+        evaluate_and_report(compose(["experiment=ring_ppo", "controller=idm"]), tmp_path / "c",
+                            deploy_overrides=[("transforms.safety_layer.s_min", 6.0)])
+
+
 def test_4_eval_cli_missing_checkpoint_exit_2_and_debug_traceback(tmp_path):
     out = _cli("mt-eval", f"checkpoint={tmp_path}/nope.pt", f"hydra.run.dir={tmp_path}/o", cwd=tmp_path)
     assert out.returncode == 2 and "Traceback" not in out.stderr

@@ -441,7 +441,7 @@ def test_generalization_set_evaluates_a_deployed_variant_without_retraining(tmp_
     with pytest.raises(ValueError, match="set .* differs"):
         generalization_table([tmp_path / "plain", tmp_path / "v"])
     for bad, said in ((["env.ring_length=300"], "allowed: transforms.KEY=VALUE"),
-                      (["transforms.safety_layer.s_mni=4"], "transforms.safety_layer.s_mni is not a setting"),
+                      (["transforms.safety_layer.s_mni=4"], "transforms.safety_layer.s_mni: not a setting"),
                       (["transforms.safety_layer.s_min=-1"], "--set transforms.safety_layer.s_min")):
         with pytest.raises(SystemExit, match=said):
             mod.main([*common, "--set", *bad, "--out", str(tmp_path / "bad")])

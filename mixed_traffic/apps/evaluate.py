@@ -16,7 +16,7 @@ import hydra
 from omegaconf import DictConfig
 
 from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
-from mixed_traffic.validation import ConfigError, guarded, run_cli, validate_config
+from mixed_traffic.validation import ConfigError, guarded, parse_deploy_overrides, run_cli, validate_config
 
 register_configs()
 
@@ -39,9 +39,15 @@ def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
 
     validate_config(cfg)
     check_eval_overrides(cfg, list(overrides))
+    # a checkpoint deploys with its own transforms; transforms.* overrides change them for this evaluation (a
+    # deployed variant, named in the report), rather than being silently dropped
+    deploy = [o for o in overrides if o.split("=", 1)[0].lstrip("+~").startswith("transforms")]
+    pairs = parse_deploy_overrides(deploy) if cfg.get("checkpoint") else []
     set_threads(cfg.threads)
     out = Path(cfg.out_dir) / "eval"
-    rep = evaluate_and_report(cfg, out)
+    rep = evaluate_and_report(cfg, out, deploy_overrides=pairs)
+    if pairs:
+        print("deployed with " + " ".join(deploy))
     print(f"report: {rep['paths']['md']}")
     print(f"        {rep['paths']['json']}")
     if "sets" in rep:  # the intersection: one table per test set

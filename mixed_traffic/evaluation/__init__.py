@@ -24,8 +24,12 @@ from mixed_traffic.validation import ConfigError
 
 
 def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str | Path | None = None,
-                        controller: str | None = None, title: str | None = None) -> dict:
+                        controller: str | None = None, title: str | None = None, deploy_overrides=()) -> dict:
     """Evaluate a checkpoint (its own env/transform config, with ``cfg.eval``) or a classical controller.
+
+    ``deploy_overrides``: ``(key, value)`` pairs of the checkpoint's transforms to deploy it with
+    (:func:`mixed_traffic.validation.parse_deploy_overrides`; ``mt-eval checkpoint=... transforms.KEY=VALUE``), a
+    variant evaluated without retraining; the report names them.
 
     Returns the report dict with ``paths`` (report.json, report.md, plots).
     """
@@ -37,6 +41,13 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         raise ConfigError("checkpoint", f"{problem}: give exactly one of the two",
                           "checkpoint=PATH (a run directory or a .pt), or controller=idm|ovm|soft|base "
                           "(NAME:key=number;... for parameters)")
+    if deploy_overrides and checkpoint is None:
+        raise ConfigError("transforms", "deploy-time overrides apply to a checkpoint", "checkpoint=PATH with "
+                          "transforms.KEY=VALUE; a classical controller takes the experiment's transforms as composed")
+    if deploy_overrides and (checkpoint_config(checkpoint)[0].env.scenario == "intersection"
+                             or is_wave_ring(checkpoint_config(checkpoint)[0])):
+        raise ConfigError(deploy_overrides[0][0], "deploy-time overrides apply to the ring's head-profile evaluation",
+                          "no transforms.* override with an intersection or wave-ring checkpoint")
     if (checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg).env.scenario == "intersection":
         from mixed_traffic.intersection.evaluate import evaluate_run
 
@@ -46,12 +57,17 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     run_dir = None
     if checkpoint is not None:
         run_cfg, state = checkpoint_config(checkpoint)
+        if deploy_overrides:
+            from mixed_traffic.validation import with_deploy_overrides
+
+            run_cfg = with_deploy_overrides(run_cfg, deploy_overrides)
         run_seconds = run_cfg.eval.get("episode_seconds")
         run_cfg.eval = cfg.eval  # evaluation settings come from the caller
         if cfg.eval.get("episode_seconds") is None and run_seconds is not None:
             run_cfg.eval.episode_seconds = run_seconds  # ... but a run's evaluation length is kept
         factory = policy_factory_from_state(run_cfg, state)
-        label = str(checkpoint)
+        label = str(checkpoint) + (" deployed with " + " ".join(f"{k}={v}" for k, v in deploy_overrides)
+                                   if deploy_overrides else "")
         p = Path(checkpoint)
         run_dir = p if p.is_dir() else (p.parent.parent if p.parent.name == "checkpoints" else p.parent)
         eval_cfg = run_cfg
@@ -80,6 +96,8 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     report["policy"] = label
     report["env"] = OmegaConf.to_container(eval_cfg.env, resolve=True)
     report["transforms"] = list(eval_cfg.transforms.chain)
+    if deploy_overrides:
+        report["deploy_overrides"] = {k: v for k, v in deploy_overrides}
     if "safety_layer" in eval_cfg.transforms.chain:  # the layer as it was deployed here (noise margins aside)
         from mixed_traffic.training.builders import safety_layer_settings
 
