@@ -380,7 +380,6 @@ def main(argv=None) -> dict:
                 "eval.sensor_noise_margin": "--sensor-noise-margin", "eval.sensor_filter_gap": "--sensor-filter-model GAP",
                 "eval.sensor_filter_speed": "--sensor-filter-model SPEED",
                 "eval.sensor_filter_tau": "--sensor-filter-model TAU"}.get(e.field, e.field)
-        flag = f"--set {e.field}" if any(k == e.field for k, _ in settings_set) else flag
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}

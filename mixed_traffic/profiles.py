@@ -127,14 +127,21 @@ class RandomRamps:
         return torch.cat([times, speeds], dim=1)
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
-        k = params.shape[-1] // 2
-        times, speeds = params[..., :k].to(t.dtype), params[..., k:].to(t.dtype)
-        tt = torch.minimum(t, times[..., -1]).unsqueeze(-1)
-        idx = torch.searchsorted(times.contiguous(), tt.contiguous(), right=True).clamp(1, k - 1)
-        t0, t1 = times.gather(-1, idx - 1), times.gather(-1, idx)
-        v0, v1 = speeds.gather(-1, idx - 1), speeds.gather(-1, idx)
-        w = ((tt - t0) / (t1 - t0).clamp_min(1e-9)).clamp(0.0, 1.0)
-        return (v0 + w * (v1 - v0)).squeeze(-1)
+        return _knot_speed(t, params)
+
+
+def _knot_speed(t: Tensor, params: Tensor) -> Tensor:
+    """The speed at ``t`` (``[batch]``) through per-episode knots ``params`` (``[batch, 2K]``: ``t_0 .. t_K-1,
+    v_0 .. v_K-1``), linear between them and held after the last: the drawn profiles' (:class:`RandomRamps`,
+    :class:`RandomStopAndGo`)."""
+    k = params.shape[-1] // 2
+    times, speeds = params[..., :k].to(t.dtype), params[..., k:].to(t.dtype)
+    tt = torch.minimum(t, times[..., -1]).unsqueeze(-1)
+    idx = torch.searchsorted(times.contiguous(), tt.contiguous(), right=True).clamp(1, k - 1)
+    t0, t1 = times.gather(-1, idx - 1), times.gather(-1, idx)
+    v0, v1 = speeds.gather(-1, idx - 1), speeds.gather(-1, idx)
+    w = ((tt - t0) / (t1 - t0).clamp_min(1e-9)).clamp(0.0, 1.0)
+    return (v0 + w * (v1 - v0)).squeeze(-1)
 
 
 @dataclass(frozen=True)
@@ -193,7 +200,7 @@ class RandomStopAndGo:
         return torch.cat([times, speeds], dim=1)
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
-        return RandomRamps.speed(self, t, params)
+        return _knot_speed(t, params)
 
 
 @dataclass(frozen=True)

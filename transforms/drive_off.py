@@ -33,6 +33,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.safety_layer import safe_accel_upper
 from transforms.specs import carry_to_next, entries_or_none, kept_rows
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
@@ -133,8 +134,6 @@ class DriveOffCap(Transform):
                 raise ValueError("DriveOffCap: follow needs the leader's acceleration (leader_accel)")
             floor = torch.minimum(self.follow * leader_accel, cap)
             if self.guard is not None:
-                from transforms.safety_layer import safe_accel_upper
-
                 stop_gap, brake, leader_brake = self.guard
                 floor = torch.minimum(floor, safe_accel_upper(gap, speed, leader_speed, s_min=stop_gap, dt=self.dt,
                                                               brake=brake, leader_brake=leader_brake))

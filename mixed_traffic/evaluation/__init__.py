@@ -44,19 +44,22 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     if deploy_overrides and checkpoint is None:
         raise ConfigError("transforms", "deploy-time overrides apply to a checkpoint", "checkpoint=PATH with "
                           "transforms.KEY=VALUE; a classical controller takes the experiment's transforms as composed")
-    if deploy_overrides and (checkpoint_config(checkpoint)[0].env.scenario == "intersection"
-                             or is_wave_ring(checkpoint_config(checkpoint)[0])):
+    loaded = checkpoint_config(checkpoint) if checkpoint is not None else None  # read once: (its config, its state)
+    own = loaded[0] if loaded is not None else cfg
+    intersection = own.env.scenario == "intersection"
+    waves = not intersection and is_wave_ring(own)
+    if deploy_overrides and (intersection or waves):
         raise ConfigError(deploy_overrides[0][0], "deploy-time overrides apply to the ring's head-profile evaluation",
                           "no transforms.* override with an intersection or wave-ring checkpoint")
-    if (checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg).env.scenario == "intersection":
+    if intersection:
         from mixed_traffic.intersection.evaluate import evaluate_run
 
         return evaluate_run(cfg, out_dir, checkpoint=checkpoint, controller=controller)
-    if is_wave_ring(checkpoint_config(checkpoint)[0] if checkpoint is not None else cfg):
+    if waves:
         return evaluate_waves_and_report(cfg, out_dir, checkpoint=checkpoint, controller=controller, title=title)
     run_dir = None
     if checkpoint is not None:
-        run_cfg, state = checkpoint_config(checkpoint)
+        run_cfg, state = loaded
         if deploy_overrides:
             from mixed_traffic.validation import with_deploy_overrides
 

@@ -246,6 +246,13 @@ def bar_reference(x: dict, others: dict | None = None) -> tuple[str | None, dict
     return name, pool.get(name)
 
 
+def _shown_reference(x: dict, others: dict | None) -> tuple[str | None, dict]:
+    """``(name, row)`` the tables and the figure compare with: :func:`bar_reference`'s, or IDM-as-CAV's own
+    figures where no stand-in completes (the bars then are not judged, and the name is None)."""
+    name, ref = bar_reference(x, others)
+    return name, x["idm"] if ref is None else ref
+
+
 def case_bars(x: dict, *, s_min: float = 5.0, s_max: float = 40.0, rmse_bar: float = 0.2,
               share_bar: float = 0.05, others: dict | None = None) -> dict[str, bool | None]:
     """Which of the ring's acceptance bars one run of ``benchmarks/ring_generalization.py`` meets on one case
@@ -317,12 +324,10 @@ def _load_runs(dirs) -> tuple[list[tuple[str, dict]], list[str]]:
 
 def clean_cases(dirs, *, rmse_bar: float = 0.2) -> tuple[int, int]:
     """``(cases that meet every bar on every run, cases)`` of runs of ``benchmarks/ring_generalization.py``
-    (:func:`case_bars`): the count the ``bars`` table of :func:`generalization_table` ends with."""
-    runs, cases = _load_runs(dirs)
-    clean = sum(all(v is not False for _, g in runs
-                    for v in case_bars(g["results"][c], rmse_bar=rmse_bar, others=_classical_pool(runs, c)).values())
-                for c in cases)
-    return clean, len(cases)
+    (:func:`case_bars`, as :func:`scorecard_margins` judges them): the count the ``bars`` table of
+    :func:`generalization_table` ends with."""
+    margins = scorecard_margins(dirs, rmse_bar=rmse_bar)
+    return sum(e["clean"] for e in margins), len(margins)
 
 
 def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> str:
@@ -376,10 +381,9 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
                 raise ValueError(f"--generalization: case {c!r} has no idm baseline; allowed: runs made with "
                                  "--baselines idm (IDM-as-CAV, the reference of the bars)")
             free, std = x["policy_without_layer"], _standard(x)
-            name, idm = bar_reference(x, pool)
+            name, idm = _shown_reference(x, pool)
             if name != "idm":
                 crashed.add(name)
-                idm = x["idm"] if idm is None else idm  # no stand-in: the figures against IDM's, the bars not judged
             coll += x["policy"]["collisions"] + sum(v["collisions"] for v in free.values())
             gmin = min(gmin, *(v["min_gap_after"] for v in free.values()))
             gmax = max(gmax, *(v["max_head_gap"] for v in free.values()))
@@ -445,15 +449,13 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
         name = None
         for _, g in runs:
             x = g["results"][c]
-            name, ref = bar_reference(x, pool)
-            ref = x["idm"] if ref is None else ref
+            name, ref = _shown_reference(x, pool)
             std = _standard(x)
             jerk.append(100.0 * (std["jerk"] / ref["jerk"] - 1.0))
             ret.append(100.0 * (std["return"] - ref["return"]) / abs(ref["return"]))
             met.append(case_bars(x, rmse_bar=rmse_bar, others=pool))
         first = runs[0][1]["results"][c]
-        _, ref = bar_reference(first, pool)
-        ref = first["idm"] if ref is None else ref
+        _, ref = _shown_reference(first, pool)
         rows = {"idm": first["idm"], **pool}
         classical = {k: (100.0 * (r["jerk"] / ref["jerk"] - 1.0), 100.0 * (r["return"] - ref["return"]) / abs(ref["return"]))
                      for k, r in rows.items() if r["collisions"] == 0 and r is not ref}
@@ -462,8 +464,8 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
     return out
 
 
-def scorecard_plot(groups: dict, path, *, rmse_bar: float = 0.2, title: str = "") -> None:
-    """One figure of the scorecard (``groups``: group name -> the run directories of that group): per case, the
+def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
+    """One figure of the scorecard (``groups``: group name -> that group's :func:`scorecard_margins`): per case, the
     policy's jerk and return against the bars' reference (IDM-as-CAV, or its stand-in where it collides, marked †)
     as the span over the runs, green where the case meets every bar on every run, red where it does not, and each
     classical controller that completes every episode as a marker. A bar is met below 0 % (jerk) or above it
@@ -474,9 +476,9 @@ def scorecard_plot(groups: dict, path, *, rmse_bar: float = 0.2, title: str = ""
     import matplotlib.pyplot as plt
 
     entries, bounds = [], []
-    for g, dirs in groups.items():
+    for g, margins in groups.items():
         start = len(entries)
-        entries += scorecard_margins(dirs, rmse_bar=rmse_bar)
+        entries += margins
         bounds.append((g, start, len(entries)))
     n = len(entries)
     fig, axes = plt.subplots(2, 1, figsize=(max(10.0, 0.42 * n + 2.0), 8.0), sharex=True)
