@@ -221,7 +221,8 @@ class DriveOffConfig:
     (:class:`transforms.DriveOffCap`, placed between the safety layer and the residual): it eases onto its leader's
     speed from below instead of closing the gap by passing it. The cap lifts as the gap projected at ``accel``
     rises through ``gaps`` (m), so the gap stays in the band. ``when``: ``deploy`` (only where the policy is
-    evaluated or deployed, as ``catch_up.when``) or ``always``. ``gain`` null (the default): off.
+    evaluated or deployed, as ``catch_up.when``) or ``always``. ``gain`` null (the default): off. A long ``release``
+    (the default experiment's 40 s) keeps the cap through the leader's next hold and into its next stop.
     ``residual_play`` (m/s^2, > 0, or null): while the cap is engaged, the learned residual's term passes through
     a backlash of this half-width (``transforms.ResidualAction(play=..., play_key=("drive_off", "engaged"))``): it
     holds its level and drops the policy's small reversals behind a leader that drives off; null (the default): off.
@@ -234,7 +235,7 @@ class DriveOffConfig:
     overspeed: float = 0.15  # m/s
     gaps: Any = field(default_factory=lambda: [34.0, 38.0])  # [from, full] (m)
     accel: float = 1.5  # m/s^2
-    release: float = 5.0  # s
+    release: float = 5.0  # s (matched, the command under the cap, before the cap releases)
     standstill: float = 0.5  # m/s: the car and its leader both below it engage the cap
     when: str = "deploy"  # "always" or "deploy"
     residual_play: float | None = None  # m/s^2: the residual's backlash while the cap is engaged; null: off

@@ -423,14 +423,27 @@ def test_the_layer_recover_experiment_is_drive_off_with_the_recover_rule_at_depl
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
 
-def test_the_default_is_the_safety_net_with_the_residuals_backlash_under_the_drive_off_cap_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_residual_play`` (the default) is ``ring_lagrangian_ppo_safety_net`` with a
-    backlash of 0.1 m/s^2 on the residual while the (deploy-only) drive-off cap is engaged."""
+def test_the_default_is_residual_play_with_the_drive_off_cap_held_for_40_s_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_cap_hold`` (the default) is ``ring_lagrangian_ppo_residual_play`` with the
+    (deploy-only) drive-off cap released 40 s after the CAV has matched its leader instead of 5 s."""
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
     from mixed_traffic.validation import validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_residual_play"
-    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_safety_net"))
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_cap_hold"
+    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_residual_play"))
+    validate_config(d)
+    assert d.transforms.residual.drive_off.release == 40.0 and d.transforms.residual.drive_off.when == "deploy"
+    with open_dict(d):
+        d.transforms.residual.drive_off.release, d.name = 5.0, prev.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
+
+
+def test_residual_play_is_the_safety_net_with_the_residuals_backlash_under_the_drive_off_cap_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_residual_play`` is ``ring_lagrangian_ppo_safety_net`` with a backlash of
+    0.1 m/s^2 on the residual while the (deploy-only) drive-off cap is engaged."""
+    from mixed_traffic.validation import validate_config
+
+    d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_residual_play", "ring_lagrangian_ppo_safety_net"))
     validate_config(d)
     assert d.transforms.residual.drive_off.residual_play == 0.1 and d.transforms.residual.drive_off.when == "deploy"
     with open_dict(d):

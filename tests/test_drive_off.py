@@ -60,6 +60,27 @@ def test_it_releases_once_matched_and_then_leaves_the_command_alone():
     assert float(while_engaged.min()) < -0.1  # ... where before the cap held it back
 
 
+def test_a_long_release_keeps_the_cap_through_the_leaders_next_hold():
+    """The default's ``release: 40``: once both cars have stood still, the cap holds until the CAV has matched its
+    leader, with its command under the cap, for ``release`` s. After 20 s matched, a cap of 5 s has handed back to
+    the law (a command above the leader's speed passes), one of 40 s still caps it at ``overspeed`` above it."""
+    def drive(release):
+        cap = DriveOffCap(overspeed=0.15, release=release, dt=0.1)
+        engaged, calm = torch.zeros(1, dtype=torch.bool), torch.zeros(1)
+        zero = torch.zeros(1)
+        _, engaged, calm = cap.apply(zero, torch.tensor([6.0]), zero, zero, engaged, calm)  # both stopped
+        v = torch.tensor([15.0])
+        for _ in range(200):  # 20 s matched at 15 m/s, the command under the cap
+            _, engaged, calm = cap.apply(zero, torch.tensor([25.0]), v, v, engaged, calm)
+        # the law asks for 1 m/s^2 at the leader's speed (to close the gap)
+        executed, engaged, _ = cap.apply(torch.tensor([1.0]), torch.tensor([25.0]), v, v, engaged, calm)
+        return float(executed), bool(engaged)
+
+    assert drive(5.0) == (1.0, False)
+    executed, engaged = drive(40.0)
+    assert engaged and executed == pytest.approx(0.15, abs=1e-5)
+
+
 def test_no_standstill_no_change():
     kw = dict(profile="random_steps", profile_kwargs={"v_low": 5.0, "v_high": 20.0, "period": 15.0, "v_init": 10.0})
     _, free = _idm_rollout(1500, cap=None, batch=4, **kw)
