@@ -244,6 +244,28 @@ class DriveOffConfig:
 
 
 @dataclass
+class JoinConfig:
+    """``transforms.residual.join``: a CAV that starts farther than ``gap`` (m) behind its leader joins it under a
+    classical law (``base`` with ``params``, as :func:`mixed_traffic.controllers.classic.make_classic_policy` takes
+    them, inside the base's stopping envelope of ``stop_gap``), and the policy's command (base plus residual) takes
+    over linearly over ``fade`` (s) from the first step at which the gap is at or below ``gap``, or at the latest
+    from the episode time ``seconds`` (s, or null: no such limit); with ``leader_speeds`` (``[v_off, v_on]`` m/s,
+    or null) the join law's part grows linearly with the leader's speed between the two, so the policy drives a
+    join behind a slow leader (:class:`transforms.JoinBlend`, placed between the safety layer and the residual). A CAV that starts at or below
+    ``gap`` is driven by the policy from the start. ``when``: ``deploy`` (only where the policy is evaluated or
+    deployed, as ``catch_up.when``) or ``always``. ``base`` null (the default): off.
+    """
+
+    base: str | None = None  # "idm", "ovm", "soft" or "cacc"; null: off
+    params: Any = field(default_factory=lambda: DictConfig({}, flags={"struct": False}))
+    gap: float = 35.0  # m: the gap at or below which the CAV has joined
+    fade: float = 10.0  # s: the handover to the policy's command
+    seconds: float | None = None  # s: the handover begins at the latest at this episode time; null: only at gap
+    leader_speeds: Any = None  # [v_off, v_on] (m/s): the join law's part grows with the leader's speed; null: all
+    when: str = "deploy"  # "always" or "deploy"
+
+
+@dataclass
 class ResidualConfig:
     """``residual_idm`` in the chain: executed = clip(base(state) + weight * action) (bounded residual).
 
@@ -267,6 +289,8 @@ class ResidualConfig:
     its leader pulls away from a large gap; off by default.
     ``drive_off`` (:class:`DriveOffConfig`): after a standstill, the command capped so that the CAV eases onto
     its leader's speed from below; off by default.
+    ``join`` (:class:`JoinConfig`): a CAV that starts far behind its leader joins it under a classical law and
+    then hands over to the policy's command; off by default.
     ``envelope_fade`` (``off``, ``always`` or ``deploy``; not ``off`` needs ``stop_gap``): a residual that
     accelerates fades out as the base nears its envelope (``ResidualAction(room_key=...)``), so base +
     residual never exceeds it; a braking residual is left as it is. ``always``: in training too;
@@ -290,6 +314,7 @@ class ResidualConfig:
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
     drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
+    join: JoinConfig = field(default_factory=JoinConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     # the envelope's measurement margins (m, m/s), as the safety layer's (eval.sensor_noise_margin sets them)
     gap_margin: float = 0.0

@@ -151,6 +151,10 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.drive_off.residual_play": Real(0, 3, lo_open=True, optional=True),
     "transforms.residual.drive_off.follow": Real(0, 1.5, lo_open=True, optional=True),
     "transforms.residual.drive_off.follow_above": Real(0, 3),
+    "transforms.residual.join.gap": Real(0, 200, lo_open=True),
+    "transforms.residual.join.fade": Real(0, 600, lo_open=True),
+    "transforms.residual.join.seconds": Real(0, 3600, lo_open=True, optional=True),
+    "transforms.residual.join.when": OneOf(("always", "deploy")),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -306,9 +310,13 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     anything runs) or a value out of range."""
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
     for key, value in pairs:
-        if OmegaConf.select(cfg, key, default="<missing>") == "<missing>":
+        parent = key.rpartition(".")[0]
+        is_param = parent.endswith(".params") and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))
+        if not is_param and OmegaConf.select(cfg, key, default="<missing>") == "<missing>":  # a law's parameter is
+            # checked against its model below (validate_config); any other key must exist
             raise ConfigError(key, "not a setting of the run's config",
-                              "an existing transforms.* key (see the run's config.yaml)")
+                              "an existing transforms.* key (see the run's config.yaml), or a classical law's "
+                              "parameter under an existing params")
         OmegaConf.update(cfg, key, value, merge=False)
     if pairs:
         validate_config(cfg)
@@ -337,6 +345,17 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                           f"{tc.safety_layer.deployed_beyond_s_max!r} has no effect with deployed_s_max: false "
                           "(the deployed layer has no s_max)", "null, or deployed_s_max: true")
     _check_classic_params(cfg, "transforms.residual")
+    join_base = OmegaConf.select(cfg, "transforms.residual.join.base", default=None)
+    if join_base is not None:
+        from mixed_traffic.controllers.classic import CLASSIC
+
+        OneOf(tuple(CLASSIC))("transforms.residual.join.base", join_base)
+        _check_classic_params(cfg, "transforms.residual.join")
+        speeds = OmegaConf.select(cfg, "transforms.residual.join.leader_speeds", default=None)
+        if speeds is not None and not (OmegaConf.is_list(speeds) and len(speeds) == 2
+                                       and all(is_real(x) for x in speeds) and 0 <= speeds[0] < speeds[1]):
+            raise ConfigError("transforms.residual.join.leader_speeds", repr(speeds),
+                              "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
     fade = OmegaConf.select(cfg, "transforms.residual.fade_speeds", default=None)
     if fade is not None and not (OmegaConf.is_list(fade) and len(fade) == 2
                                  and all(is_real(x) for x in fade)

@@ -13,6 +13,7 @@ from transforms.drive_off import DriveOffCap
 from transforms.intervention_cost import InterventionCost
 from transforms.jerk_limit import JerkLimit
 from transforms.jerk_penalty import JerkPenalty
+from transforms.join import JoinBlend
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.measurement_filter import MeasurementFilter
 from transforms.residual import ResidualAction
@@ -44,4 +45,5 @@ __all__ = [
     "SensorNoise",
     "MeasurementFilter",
     "DriveOffCap",
+    "JoinBlend",
 ]

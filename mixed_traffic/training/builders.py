@@ -230,6 +230,27 @@ def drive_off_cap(rcfg, env):
                        follow_above=d.get("follow_above", 0.3), guard=guard)
 
 
+def join_blend(rcfg, env, *, deploy: bool = True):
+    """The :class:`transforms.JoinBlend` of ``transforms.residual.join`` (``rcfg``: the ``residual`` node) for ``env``,
+    or None when its ``base`` is null (off) or it is deploy-only and ``deploy`` is False. The join law runs inside
+    the stopping envelope of the base's ``stop_gap`` (5 m where the base has none)."""
+    from mixed_traffic.controllers.classic import make_classic_policy, stopping_envelope_policy
+    from transforms import JoinBlend
+
+    j = rcfg.get("join")
+    if j is None or j.get("base") is None or not (deploy or j.get("when", "deploy") == "always"):
+        return None
+    params = {k: v for k, v in dict(j.get("params") or {}).items() if v is not None}
+    stop_gap = rcfg.get("stop_gap")
+    law = stopping_envelope_policy(make_classic_policy(j.base, env, **params), env,
+                                   5.0 if stop_gap is None else float(stop_gap))
+    seconds = j.get("seconds")
+    speeds = j.get("leader_speeds")
+    return JoinBlend(law, gap=float(j.gap), fade=float(j.fade), seconds=None if seconds is None else float(seconds),
+                     leader_speeds=None if speeds is None else (float(speeds[0]), float(speeds[1])),
+                     dt=float(env.scenario.dt))
+
+
 def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
     from transforms.drive_off import ENGAGED
@@ -251,9 +272,9 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
                                   fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
                                   slack_key=slack_key, fade_slack=fade_slack, play=play,
                                   play_key=None if play is None else ENGAGED)
-        if cap is None:
-            return residual
-        return [cap, residual]  # the action passes the residual first, then the cap
+        join = join_blend(r, env, deploy=deploy)
+        steps = [t for t in (cap, join) if t is not None]
+        return [*steps, residual] if steps else residual  # the action passes the residual, the join, then the cap
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 

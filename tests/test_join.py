@@ -1,0 +1,156 @@
+"""JoinBlend: a CAV that starts far behind joins under a smooth law and hands over to the policy's command."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from mixed_traffic import make_env
+from mixed_traffic.config import compose
+from mixed_traffic.controllers.classic import make_classic_policy, stopping_envelope_policy
+from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.validation import ConfigError, validate_config, with_deploy_overrides
+from transforms import JoinBlend, ResidualAction
+
+FAR, CLOSE = dict(init_spacing_range=[73.4, 73.4]), dict(init_spacing_range=[15.0, 15.0])
+
+
+def _rollout(steps: int, *, join: bool, batch: int = 1, gap: float = 35.0, fade: float = 10.0,
+             seconds: float | None = None, leader_speeds=None, **env_kw):
+    """IDM (s0 2.5 m) drives the CAV through a residual of weight 0; with ``join`` an IDM of s0 7 m, v0 60 m/s
+    inside the stopping envelope joins first."""
+    base = make_env("ring", batch_size=batch, seed=0, **env_kw)
+    ts = [ResidualAction(make_classic_policy("idm", base), weight=0.0)]
+    if join:
+        law = stopping_envelope_policy(make_classic_policy("idm", base, s0=7.0, v0=60.0), base, 5.0)
+        ts.insert(0, JoinBlend(law, gap=gap, fade=fade, seconds=seconds, leader_speeds=leader_speeds,
+                               dt=base.scenario.dt))
+    env = TransformedEnv(base, Compose(*ts))
+    with torch.no_grad():
+        return env.rollout(steps, lambda td: td.set("action", torch.zeros(batch, 1)), break_when_any_done=False)
+
+
+def test_specs_hold():
+    base = make_env("ring", batch_size=2, seed=0, **FAR)
+    law = make_classic_policy("idm", base, s0=7.0)
+    check_env_specs(TransformedEnv(base, Compose(JoinBlend(law, dt=base.scenario.dt),
+                                                 ResidualAction(make_classic_policy("idm", base), weight=0.5))))
+
+
+def test_the_join_law_drives_until_the_gap_reaches_the_band_then_hands_over_over_the_fade():
+    td = _rollout(600, join=True, gap=35.0, fade=10.0, **FAR)
+    gap, share = td["cav", "gap"][0, :, 0], td["next", "join", "share"][0, :, 0]
+    executed, policy = td["next", "cav", "accel"][0, :, 0], td["next", "residual", "base_action"][0, :, 0]
+    first = int((gap <= 35.0).nonzero().min())  # the first step at or below the join's gap
+    assert 10 < first < 400
+    assert bool((share[:first] == 0).all())
+    assert float(share[first]) == pytest.approx(0.01)  # dt / fade
+    assert bool((share[first + 99:] == 1).all()) and bool((share[first:first + 99] < 1).all())
+    assert float((executed[:first] - policy[:first]).abs().max()) > 0.1  # the join law drove, not the policy
+    torch.testing.assert_close(executed[first + 100:], policy[first + 100:], atol=1e-5, rtol=0)
+
+
+def test_a_cav_that_starts_close_is_driven_by_the_policy_from_the_first_step():
+    joined, plain = _rollout(200, join=True, **CLOSE), _rollout(200, join=False, **CLOSE)
+    assert bool((joined["next", "join", "share"] == 1).all())
+    torch.testing.assert_close(joined["next", "cav", "accel"], plain["next", "cav", "accel"], atol=0, rtol=0)
+
+
+def test_seconds_start_the_handover_at_the_latest_at_that_time():
+    td = _rollout(300, join=True, gap=1.0, seconds=5.0, fade=10.0, **FAR)  # a gap the CAV never reaches
+    share = td["next", "join", "share"][0, :, 0]
+    assert bool((share[:50] == 0).all()) and float(share[50]) > 0  # the step that starts at 5 s
+    assert bool((share[149:] == 1).all()) and float(share[148]) < 1
+    never = _rollout(300, join=True, gap=1.0, **FAR)["next", "join", "share"]
+    assert bool((never == 0).all())
+
+
+def test_leader_speeds_leave_a_join_behind_a_slow_leader_to_the_policy():
+    slow = dict(FAR, profile="piecewise", profile_kwargs={"times": [0, 400], "speeds": [12, 12]})
+    gated = _rollout(300, join=True, leader_speeds=(16.0, 20.0), **slow)
+    plain = _rollout(300, join=False, **slow)
+    assert float(gated["next", "join", "share"][0, 0, 0]) == 0.0  # joining, but the leader is below v_off
+    torch.testing.assert_close(gated["next", "cav", "accel"], plain["next", "cav", "accel"], atol=0, rtol=0)
+    base = make_env("ring", batch_size=1, seed=0)
+    join = JoinBlend(make_classic_policy("idm", base), gap=35.0, leader_speeds=(16.0, 20.0))
+    a, a_join, gap, share = (torch.tensor([0.5, 0.5, 0.5]), torch.tensor([-0.5, -0.5, -0.5]),
+                             torch.full((3,), 60.0), torch.zeros(3))
+    executed, _ = join.apply(a, a_join, gap, share, leader_speed=torch.tensor([12.0, 18.0, 25.0]))
+    torch.testing.assert_close(executed, torch.tensor([0.5, 0.0, -0.5]))  # the policy, half and half, the law
+
+
+def test_a_partial_reset_keeps_the_other_rows_state():
+    base = make_env("ring", batch_size=2, seed=0, **FAR)
+    join = JoinBlend(make_classic_policy("idm", base), gap=35.0)
+    state = TensorDict({("join", "share"): torch.tensor([[0.5], [0.5]]), "_reset": torch.tensor([[True], [False]])},
+                       batch_size=[2])
+    out = join._reset(state, TensorDict({("cav", "gap"): torch.tensor([[73.4], [73.4]])}, batch_size=[2]))
+    assert out["join", "share"].flatten().tolist() == [0.0, 0.5]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"gap": 0.0}, r"JoinBlend: gap=0.0 is invalid; allowed: > 0"),
+    ({"fade": -1.0}, r"JoinBlend: fade=-1.0 is invalid; allowed: > 0"),
+    ({"seconds": 0.0}, r"JoinBlend: seconds=0.0 is invalid; allowed: > 0 \(s\), or None"),
+    ({"leader_speeds": (20.0, 16.0)}, r"JoinBlend: leader_speeds=\(20.0, 16.0\) is invalid; allowed: \(v_off, v_on\)"),
+])
+def test_bad_settings_name_the_argument(kwargs, match):
+    base = make_env("ring", batch_size=1, seed=0)
+    with pytest.raises(ValueError, match=match):
+        JoinBlend(make_classic_policy("idm", base), **kwargs)
+
+
+JOIN = ["transforms.residual.join.base=idm", "+transforms.residual.join.params.s0=7.0"]
+
+
+def test_the_config_puts_it_between_the_cap_and_the_residual_at_deployment_only():
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_cap_hold", *JOIN]))
+    deployed = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=2, seed=0, deploy=True).transform]
+    assert deployed[deployed.index("SafetyLayer"):deployed.index("ResidualAction") + 1] == \
+        ["SafetyLayer", "DriveOffCap", "JoinBlend", "ResidualAction"]
+    trained = [type(t).__name__ for t in make_transformed_env(cfg, num_envs=1, seed=0).transform]
+    assert "JoinBlend" not in trained
+    off = validate_config(compose(["experiment=ring_lagrangian_ppo_cap_hold"]))
+    assert "JoinBlend" not in [type(t).__name__ for t in make_transformed_env(off, num_envs=1, seed=0, deploy=True).transform]
+
+
+@pytest.mark.parametrize("override, match", [
+    ("transforms.residual.join.gap=-1.0", r"transforms.residual.join.gap: -1.0 is out of range"),
+    ("transforms.residual.join.when=never", r"transforms.residual.join.when"),
+    ("transforms.residual.join.base=gipps", r"transforms.residual.join.base"),
+    ("transforms.residual.join.leader_speeds=[20.0,16.0]", r"transforms.residual.join.leader_speeds: \[20.0, 16.0\]"),
+    ("+transforms.residual.join.params.s00=7.0", r"transforms.residual.join.params.s00: is not a idm parameter"),
+])
+def test_bad_config_fails_at_start_up_naming_the_field(override, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_cap_hold", "transforms.residual.join.base=idm",
+                                 override]))
+
+
+def test_a_deployed_join_law_takes_parameters_the_run_never_set_and_refuses_typos():
+    run = validate_config(compose(["experiment=ring_lagrangian_ppo_cap_hold"]))
+    cfg = with_deploy_overrides(run, [("transforms.residual.join.base", "idm"),
+                                      ("transforms.residual.join.params.T", 0.8)])
+    assert cfg.transforms.residual.join.params.T == 0.8
+    with pytest.raises(ConfigError, match=r"transforms.residual.join.params.TT: is not a idm parameter"):
+        with_deploy_overrides(run, [("transforms.residual.join.base", "idm"), ("transforms.residual.join.params.TT", 1.0)])
+    with pytest.raises(ConfigError, match=r"transforms.residual.join.gapp: not a setting of the run's config"):
+        with_deploy_overrides(run, [("transforms.residual.join.gapp", 30.0)])
+
+
+def test_the_join_experiment_is_cap_hold_with_the_deployed_join_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_join`` is ``ring_lagrangian_ppo_cap_hold`` with the join of the long start
+    (IDM s0 7 m, v0 60 m/s, T 0.8 s, b 3 m/s^2; handed over at 40 m or 15 s, over 10 s; behind leaders above 16 m/s)."""
+    from omegaconf import OmegaConf, open_dict
+
+    d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_join", "ring_lagrangian_ppo_cap_hold"))
+    validate_config(d)
+    j = d.transforms.residual.join
+    assert (j.base, dict(j.params), j.gap, j.fade, j.seconds, list(j.leader_speeds), j.when) == \
+        ("idm", {"s0": 7.0, "v0": 60.0, "T": 0.8, "b": 3.0}, 40.0, 10.0, 15.0, [16.0, 20.0], "deploy")
+    with open_dict(d):
+        d.transforms.residual.join, d.name = prev.transforms.residual.join, prev.name
+    assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
