@@ -423,14 +423,12 @@ def test_the_layer_recover_experiment_is_drive_off_with_the_recover_rule_at_depl
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
 
-def test_the_default_is_residual_play_with_the_drive_off_cap_held_for_40_s_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_cap_hold`` (the default) is ``ring_lagrangian_ppo_residual_play`` with the
-    (deploy-only) drive-off cap released 40 s after the CAV has matched its leader instead of 5 s."""
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+def test_cap_hold_is_residual_play_with_the_drive_off_cap_held_for_40_s_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_cap_hold`` (the previous default) is ``ring_lagrangian_ppo_residual_play`` with
+    the (deploy-only) drive-off cap released 40 s after the CAV has matched its leader instead of 5 s."""
     from mixed_traffic.validation import validate_config
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_cap_hold"
-    d, prev = (compose([f"experiment={n}"]) for n in (DEFAULT_EXPERIMENT, "ring_lagrangian_ppo_residual_play"))
+    d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_cap_hold", "ring_lagrangian_ppo_residual_play"))
     validate_config(d)
     assert d.transforms.residual.drive_off.release == 40.0 and d.transforms.residual.drive_off.when == "deploy"
     with open_dict(d):

@@ -141,16 +141,21 @@ def test_a_deployed_join_law_takes_parameters_the_run_never_set_and_refuses_typo
         with_deploy_overrides(run, [("transforms.residual.join.gapp", 30.0)])
 
 
-def test_the_join_experiment_is_cap_hold_with_the_deployed_join_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_join`` is ``ring_lagrangian_ppo_cap_hold`` with the join of the long start
-    (IDM s0 7 m, v0 60 m/s, T 0.8 s, b 3 m/s^2; handed over at 40 m or 15 s, over 10 s; behind leaders above 16 m/s)."""
+def test_the_default_is_cap_hold_with_the_deployed_join_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_join`` (the default) is ``ring_lagrangian_ppo_cap_hold`` with the join of the
+    long start (IDM s0 7 m, v0 60 m/s, T 0.8 s, b 3 m/s^2, steady gap at most 27 m; handed over at 40 m or 15 s,
+    over 10 s; behind leaders above 16 m/s)."""
     from omegaconf import OmegaConf, open_dict
+
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_join"
 
     d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_join", "ring_lagrangian_ppo_cap_hold"))
     validate_config(d)
     j = d.transforms.residual.join
     assert (j.base, dict(j.params), j.gap, j.fade, j.seconds, list(j.leader_speeds), j.when) == \
-        ("idm", {"s0": 7.0, "v0": 60.0, "T": 0.8, "b": 3.0}, 40.0, 10.0, 15.0, [16.0, 20.0], "deploy")
+        ("idm", {"s0": 7.0, "v0": 60.0, "T": 0.8, "b": 3.0, "gap_max": 27.0}, 40.0, 10.0, 15.0, [16.0, 20.0], "deploy")
     with open_dict(d):
         d.transforms.residual.join, d.name = prev.transforms.residual.join, prev.name
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)

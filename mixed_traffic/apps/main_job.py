@@ -20,7 +20,7 @@ from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
 from mixed_traffic.validation import guarded, run_cli
 
 register_configs()
-DEFAULT_EXPERIMENT = "ring_lagrangian_ppo_cap_hold"  # docs/results.md, "The default"
+DEFAULT_EXPERIMENT = "ring_lagrangian_ppo_join"  # docs/results.md, "The default: a join from the long start"
 
 
 def small_budget() -> bool:
