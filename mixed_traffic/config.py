@@ -251,8 +251,8 @@ class JoinConfig:
     over linearly over ``fade`` (s) from the first step at which the gap is at or below ``gap``, or at the latest
     from the episode time ``seconds`` (s, or null: no such limit); with ``leader_speeds`` (``[v_off, v_on]`` m/s,
     or null) the join law's part grows linearly with the leader's speed between the two, so the policy drives a
-    join behind a slow leader (:class:`transforms.JoinBlend`, placed between the safety layer and the residual). A CAV that starts at or below
-    ``gap`` is driven by the policy from the start. ``when``: ``deploy`` (only where the policy is evaluated or
+    join behind a slow leader (:class:`transforms.JoinBlend`, placed between the safety layer and the residual). A
+    CAV that starts at or below ``gap`` is driven by the policy from the start. ``when``: ``deploy`` (only where the policy is evaluated or
     deployed, as ``catch_up.when``) or ``always``. ``base`` null (the default): off.
     """
 

@@ -265,6 +265,15 @@ def _walk(node, prefix: str = ""):
         yield prefix[:-1], node
 
 
+def _check_ordered_pair(cfg: DictConfig, path: str, allowed: str) -> None:
+    """``path``, where set, is a list of two numbers ``[lo, hi]`` with ``0 <= lo < hi``; ``ConfigError`` naming it
+    and ``allowed`` otherwise."""
+    pair = OmegaConf.select(cfg, path, default=None)
+    if pair is not None and not (OmegaConf.is_list(pair) and len(pair) == 2 and all(is_real(x) for x in pair)
+                                 and 0 <= pair[0] < pair[1]):
+        raise ConfigError(path, repr(pair), allowed)
+
+
 def _check_classic_params(cfg: DictConfig, prefix: str) -> None:
     """``PREFIX.params`` name parameters of the classical model ``PREFIX.base`` and are numbers."""
     params = OmegaConf.select(cfg, f"{prefix}.params", default=None)
@@ -351,17 +360,9 @@ def validate_config(cfg: DictConfig) -> DictConfig:
 
         OneOf(tuple(CLASSIC))("transforms.residual.join.base", join_base)
         _check_classic_params(cfg, "transforms.residual.join")
-        speeds = OmegaConf.select(cfg, "transforms.residual.join.leader_speeds", default=None)
-        if speeds is not None and not (OmegaConf.is_list(speeds) and len(speeds) == 2
-                                       and all(is_real(x) for x in speeds) and 0 <= speeds[0] < speeds[1]):
-            raise ConfigError("transforms.residual.join.leader_speeds", repr(speeds),
-                              "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
-    fade = OmegaConf.select(cfg, "transforms.residual.fade_speeds", default=None)
-    if fade is not None and not (OmegaConf.is_list(fade) and len(fade) == 2
-                                 and all(is_real(x) for x in fade)
-                                 and 0 <= fade[0] < fade[1]):
-        raise ConfigError("transforms.residual.fade_speeds", repr(fade),
-                          "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
+        _check_ordered_pair(cfg, "transforms.residual.join.leader_speeds",
+                            "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
+    _check_ordered_pair(cfg, "transforms.residual.fade_speeds", "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
     fade_mode = OmegaConf.select(cfg, "transforms.residual.envelope_fade", default="off")
     if fade_mode != "off" and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None:
         raise ConfigError("transforms.residual.envelope_fade", f"{fade_mode} with stop_gap null",
@@ -371,10 +372,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
-        gaps = OmegaConf.select(cfg, name, default=None)
-        if gaps is not None and not (OmegaConf.is_list(gaps) and len(gaps) == 2 and all(is_real(x) for x in gaps)
-                                     and 0 <= gaps[0] < gaps[1]):
-            raise ConfigError(name, repr(gaps), "[from, full] with 0 <= from < full (m)")
+        _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

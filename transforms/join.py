@@ -5,8 +5,8 @@ close that gap. Under the policy's command that approach runs through every slot
 schedule's handover, the catch-up, the envelope) and costs jerk that has nothing to do with following. This
 transform lets a smooth join law (a classical law inside its own stopping envelope) drive while the CAV joins,
 and hands over to the policy's command linearly over ``fade`` seconds once the gap first falls to ``gap`` (or,
-with ``seconds``, at that episode time at the latest). A
-CAV that starts at or below ``gap`` is not joining: the policy drives from the first step.
+with ``seconds``, at that episode time at the latest). A CAV that starts at or below ``gap`` is not joining: the
+policy drives from the first step.
 
 It stands between the safety layer and the residual in the chain (``transforms.residual.join``), so it blends
 the command of the base plus the learned residual, and the safety layer still has the last word. Its state (the

@@ -209,6 +209,13 @@ def _sensor_noise(tcfg, env):
         raise ValueError(f"transforms.sensor_noise: {err}") from None
 
 
+def envelope_stop_gap(rcfg) -> float:
+    """The gap (m) the deploy-time rules keep with the stopping rule: the base's ``stop_gap`` (``rcfg``: the
+    ``residual`` node), or 5 m where the base has no envelope."""
+    stop_gap = rcfg.get("stop_gap")
+    return 5.0 if stop_gap is None else float(stop_gap)
+
+
 def drive_off_cap(rcfg, env):
     """The :class:`transforms.DriveOffCap` of ``transforms.residual.drive_off`` (``rcfg``: the ``residual`` node) for
     ``env``'s step, or None when its ``gain`` is null (off). Where it acts (deploy or always) is the caller's."""
@@ -222,8 +229,7 @@ def drive_off_cap(rcfg, env):
         from mixed_traffic.controllers.classic import action_bounds
         from transforms.safety_layer import scenario_leader_brake
 
-        stop_gap = rcfg.get("stop_gap")
-        guard = (5.0 if stop_gap is None else float(stop_gap), -float(action_bounds(env)[0]),
+        guard = (envelope_stop_gap(rcfg), -float(action_bounds(env)[0]),
                  scenario_leader_brake(env.scenario))
     return DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
                        standstill=d.standstill, dt=float(env.scenario.dt), follow=d.get("follow"),
@@ -241,9 +247,7 @@ def join_blend(rcfg, env, *, deploy: bool = True):
     if j is None or j.get("base") is None or not (deploy or j.get("when", "deploy") == "always"):
         return None
     params = {k: v for k, v in dict(j.get("params") or {}).items() if v is not None}
-    stop_gap = rcfg.get("stop_gap")
-    law = stopping_envelope_policy(make_classic_policy(j.base, env, **params), env,
-                                   5.0 if stop_gap is None else float(stop_gap))
+    law = stopping_envelope_policy(make_classic_policy(j.base, env, **params), env, envelope_stop_gap(rcfg))
     seconds = j.get("seconds")
     speeds = j.get("leader_speeds")
     return JoinBlend(law, gap=float(j.gap), fade=float(j.fade), seconds=None if seconds is None else float(seconds),
