@@ -299,6 +299,10 @@ class ResidualConfig:
     ``envelope_fade_slack`` (m, > 0, or null): while the car closes on its leader it also fades linearly as
     the envelope's margin in metres (``StoppingEnvelope.slack``) falls from this value to 0, so the fade
     begins before the bound is reached; null: the room below the envelope alone.
+    ``envelope_fade_slack_below`` (m/s, > 0, or null) and ``envelope_fade_slack_brake`` (m/s^2, > 0, or null),
+    with ``envelope_fade_slack``: the margin fade acts only behind a leader slower than the first or braking
+    harder than the second (its acceleration over V2V), so where a stop is under way and not while the car
+    follows a leader that slows gently at speed; both null: behind any leader.
     ``saturate_base``: true clips the base's command to the action bounds before the residual is added;
     false adds the residual to the base's own command and clips the sum once, so where the base asks for
     more braking than the actuator has, a residual cannot take part of the braking back.
@@ -321,6 +325,8 @@ class ResidualConfig:
     speed_margin: float = 0.0
     envelope_fade: str = "off"  # "off", "always", "deploy": the residual's push fades out near the envelope
     envelope_fade_slack: float | None = None  # m, > 0: ... from this margin of the envelope on; null: at the bound
+    envelope_fade_slack_below: float | None = None  # m/s, > 0: that margin fade only behind a leader slower than this
+    envelope_fade_slack_brake: float | None = None  # m/s^2, > 0: ... or one braking harder than this
     saturate_base: bool = True
 
 

@@ -138,6 +138,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
     "transforms.residual.envelope_fade": OneOf(("off", "always", "deploy")),
     "transforms.residual.envelope_fade_slack": Real(0, lo_open=True, optional=True),
+    "transforms.residual.envelope_fade_slack_below": Real(0, lo_open=True, optional=True),
+    "transforms.residual.envelope_fade_slack_brake": Real(0, lo_open=True, optional=True),
     "transforms.residual.catch_up.accel": Real(0, lo_open=True, optional=True),
     "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.residual.catch_up.horizon": Real(0),
@@ -371,6 +373,11 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and fade_mode == "off"):
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
+    for gate, what in (("below", "a leader speed (m/s, > 0)"), ("brake", "a leader deceleration (m/s^2, > 0)")):
+        if (OmegaConf.select(cfg, f"transforms.residual.envelope_fade_slack_{gate}", default=None) is not None
+                and OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is None):
+            raise ConfigError(f"transforms.residual.envelope_fade_slack_{gate}", "set with envelope_fade_slack null",
+                              f"null, or {what} with an envelope_fade_slack")
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:

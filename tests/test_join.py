@@ -141,15 +141,11 @@ def test_a_deployed_join_law_takes_parameters_the_run_never_set_and_refuses_typo
         with_deploy_overrides(run, [("transforms.residual.join.gapp", 30.0)])
 
 
-def test_the_default_is_cap_hold_with_the_deployed_join_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_join`` (the default) is ``ring_lagrangian_ppo_cap_hold`` with the join of the
-    long start (IDM s0 7 m, v0 60 m/s, T 0.8 s, b 3 m/s^2, steady gap at most 27 m; handed over at 40 m or 15 s,
-    over 10 s; behind leaders above 16 m/s)."""
+def test_join_is_cap_hold_with_the_deployed_join_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_join`` (the previous default) is ``ring_lagrangian_ppo_cap_hold`` with the
+    join of the long start (IDM s0 7 m, v0 60 m/s, T 0.8 s, b 3 m/s^2, steady gap at most 27 m; handed over at 40 m
+    or 15 s, over 10 s; behind leaders above 16 m/s)."""
     from omegaconf import OmegaConf, open_dict
-
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
-
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_join"
 
     d, prev = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_join", "ring_lagrangian_ppo_cap_hold"))
     validate_config(d)

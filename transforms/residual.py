@@ -64,6 +64,12 @@ class ResidualAction(Transform):
             below which an accelerating residual also fades linearly, ``clamp(slack / fade_slack, 0, 1)``:
             a fade that starts before the bound is reached, where the room alone falls from full to 0
             within centimetres (default None: the room alone).
+        slack_below, slack_brake: with ``fade_slack``, the margin fade acts only where the leader is slower than
+            ``slack_below`` (m/s, > 0) or brakes harder than ``slack_brake`` (m/s^2, > 0): where a stop is under
+            way, and not while the car follows a leader that slows gently at speed (default None for both:
+            everywhere).
+        leader_speed_key, leader_accel_key: what ``slack_below`` and ``slack_brake`` read (default
+            ``("cav", "leader_speed")``, ``("cav", "leader_accel")``).
         play: half-width (m/s^2, > 0) of a backlash on the residual's term (after ``engage_seconds`` and
             ``fade_speeds``): the term executed stays where it was on the last step until the policy's moves more
             than ``play`` away from it, and then follows it at that distance (default None: no backlash). It
@@ -93,7 +99,10 @@ class ResidualAction(Transform):
                  policy_bounds: tuple[float, float] | None = None, engage_seconds: float = 0.0,
                  time_key: NestedKey = ("traffic", "time"), fade_speeds: tuple[float, float] | None = None,
                  speed_key: NestedKey = ("cav", "speed"), room_key: NestedKey | None = None,
-                 slack_key: NestedKey | None = None, fade_slack: float | None = None, play: float | None = None,
+                 slack_key: NestedKey | None = None, fade_slack: float | None = None,
+                 slack_below: float | None = None, slack_brake: float | None = None,
+                 leader_speed_key: NestedKey = ("cav", "leader_speed"),
+                 leader_accel_key: NestedKey = ("cav", "leader_accel"), play: float | None = None,
                  play_key: NestedKey | None = None, held_key: NestedKey = ("residual", "held")):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
@@ -111,6 +120,10 @@ class ResidualAction(Transform):
             raise ValueError("ResidualAction: slack_key and fade_slack go together, and with a room_key")
         if fade_slack is not None and not fade_slack > 0:
             raise ValueError(f"ResidualAction: fade_slack={fade_slack!r} is invalid; allowed: > 0 (m)")
+        for name, value in (("slack_below", slack_below), ("slack_brake", slack_brake)):
+            if value is not None and not (fade_slack is not None and value > 0):
+                raise ValueError(f"ResidualAction: {name}={value!r} is invalid; allowed: > 0 with a fade_slack, "
+                                 "or None")
         if play is not None and not play > 0:
             raise ValueError(f"ResidualAction: play={play!r} is invalid; allowed: > 0 (m/s^2), or None")
         if play_key is not None and play is None:
@@ -124,6 +137,9 @@ class ResidualAction(Transform):
         self.fade_speeds = None if fade_speeds is None else (float(fade_speeds[0]), float(fade_speeds[1]))
         self.speed_key, self.room_key = speed_key, room_key
         self.slack_key, self.fade_slack = slack_key, None if fade_slack is None else float(fade_slack)
+        self.slack_below = None if slack_below is None else float(slack_below)
+        self.slack_brake = None if slack_brake is None else float(slack_brake)
+        self.leader_speed_key, self.leader_accel_key = leader_speed_key, leader_accel_key
         self.action_key = action_key
         if base_out_key is None:
             out_keys = getattr(base, "out_keys", None)
@@ -180,13 +196,30 @@ class ResidualAction(Transform):
             fade = (room / self._residual_max(a_res).clamp_min(1e-9)).clamp(max=1.0)
             if self.slack_key is not None:
                 slack = base_out.get(self.slack_key).to(a_res.dtype).reshape(a_res.shape)
-                fade = torch.minimum(fade, (slack / self.fade_slack).clamp(0.0, 1.0))
+                gate = self._slack_gate(tensordict, a_res)
+                by_slack = (slack / self.fade_slack).clamp(0.0, 1.0)
+                fade = torch.minimum(fade, by_slack if gate is None else torch.where(gate, by_slack, fade))
             residual = torch.where(residual > 0, torch.minimum(residual * fade, room), residual)  # the min: an
             # action outside the policy's bounds
         executed = torch.minimum(torch.maximum(a_base + residual, low), high)
         tensordict.set(self.action_key, executed)
         tensordict.set(self.base_action_key, a_base)
         return tensordict
+
+    def _slack_gate(self, tensordict: TensorDictBase, like: torch.Tensor) -> torch.Tensor | None:
+        """Where the margin fade acts (``slack_below`` / ``slack_brake``); None: everywhere."""
+        gate = None
+        for value, key, sign in ((self.slack_below, self.leader_speed_key, 1.0),
+                                 (self.slack_brake, self.leader_accel_key, -1.0)):
+            if value is None:
+                continue
+            x = tensordict.get(key, None)
+            if x is None:
+                raise RuntimeError(f"ResidualAction: the margin fade's gate reads {key!r}, which the step's input "
+                                   "lacks; allowed: an env that writes it (the ring's does)")
+            hit = x.to(like.dtype).reshape(like.shape) < sign * value  # slower than slack_below, or braking harder
+            gate = hit if gate is None else gate | hit
+        return gate
 
     def _backlash(self, tensordict: TensorDictBase, residual: torch.Tensor) -> torch.Tensor:
         """The residual's term through the backlash (``play``), its state updated in ``tensordict``."""
@@ -234,5 +267,7 @@ class ResidualAction(Transform):
         fade = f", fade_speeds={self.fade_speeds}" if self.fade_speeds else ""
         room = f", room_key={self.room_key}" if self.room_key is not None else ""
         room += f", fade_slack={self.fade_slack}" if self.fade_slack is not None else ""
+        room += f", slack_below={self.slack_below}" if self.slack_below is not None else ""
+        room += f", slack_brake={self.slack_brake}" if self.slack_brake is not None else ""
         room += f", play={self.play}" + (f" while {self.play_key}" if self.play_key is not None else "") if self.play else ""
         return f"{type(self).__name__}(weight={self.weight}{engage}{fade}{room}, base={type(self.base).__name__})"
