@@ -125,3 +125,6 @@ def test_mt_eval_deploys_the_margin_fade_on_a_run_of_the_default(tmp_path):
     assert rep["deploy_overrides"] == {BRAKE: 1.5, SLACK: 2.0}
     with pytest.raises(ConfigError, match=rf"^{BRAKE}: .*allowed"):
         run_eval(compose(base + [f"{BRAKE}=-1.0"]), base + [f"{BRAKE}=-1.0"])
+    bad = [f"{SLACK}=2.0", "policy.log_std_min=3.0", "policy.log_std_max=1.0"]  # the rest is still checked
+    with pytest.raises(ConfigError, match=r"^policy.log_std_min: 3.0 > log_std_max 1.0"):
+        run_eval(compose(base + bad), base + bad)

@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
 from mixed_traffic.validation import ConfigError, guarded, parse_deploy_overrides, run_cli, validate_config
@@ -40,13 +40,10 @@ def run_eval(cfg: DictConfig, overrides: list[str] = ()) -> dict:
     # a checkpoint deploys with its own transforms; transforms.* overrides change them for this evaluation (a
     # deployed variant, named in the report), rather than being silently dropped
     deploy = [o for o in overrides if o.split("=", 1)[0].lstrip("+~").startswith("transforms")]
-    try:
-        validate_config(cfg)
-    except ConfigError as e:
-        # such an override is checked against the checkpoint's own transforms (evaluate_and_report), not against
-        # this app's defaults, which may lack what the run has (e.g. the envelope a margin fade needs)
-        if not (cfg.get("checkpoint") and deploy and e.field.startswith("transforms")):
-            raise
+    # such overrides are checked against the run's own transforms (evaluate_and_report), not against this app's
+    # defaults, which may lack what the run has (e.g. the envelope a margin fade needs); the rest is checked here
+    checked = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "transforms"]) if cfg.get("checkpoint") and deploy else cfg
+    validate_config(checked)
     check_eval_overrides(cfg, list(overrides))
     pairs = parse_deploy_overrides(deploy) if cfg.get("checkpoint") else []
     set_threads(cfg.threads)

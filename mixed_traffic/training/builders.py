@@ -264,7 +264,8 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         mode = r.get("envelope_fade", "off")
         room_key = ENVELOPE_ROOM_KEY if mode == "always" or (mode == "deploy" and deploy) else None
         fade_slack = r.get("envelope_fade_slack") if room_key is not None else None
-        gate = {k: r.get(f"envelope_fade_slack_{k}") if fade_slack is not None else None for k in ("below", "brake")}
+        gate = {} if fade_slack is None else {"slack_below": r.get("envelope_fade_slack_below"),
+                                              "slack_brake": r.get("envelope_fade_slack_brake")}
         slack_key = ENVELOPE_SLACK_KEY if fade_slack is not None else None
         base = residual_base(r, env, saturate=r.get("saturate_base", True), room_key=room_key, slack_key=slack_key,
                              deploy=deploy)
@@ -275,8 +276,7 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         play = None if cap is None else r.drive_off.get("residual_play")
         residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
                                   fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
-                                  slack_key=slack_key, fade_slack=fade_slack, slack_below=gate["below"],
-                                  slack_brake=gate["brake"], play=play,
+                                  slack_key=slack_key, fade_slack=fade_slack, **gate, play=play,
                                   play_key=None if play is None else ENGAGED)
         join = join_blend(r, env, deploy=deploy)
         steps = [t for t in (cap, join) if t is not None]
