@@ -15,6 +15,9 @@ and prints the comparison table.
     .venv/bin/python benchmarks/ring_policy_on_sumo.py \
         --checkpoint outputs/results/ring_lagrangian_ppo_seed0/final.pt \
         --episodes 4 --seconds 120 --out outputs/results/ring_lagrangian_ppo_seed0/eval_sumo
+
+``--set transforms.KEY=VALUE ...`` deploys the run with other settings of its transforms on both backends, as
+``ring_generalization.py --set`` does (a bad key or value stops the script, naming it, before SUMO starts).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # ring_generalization's --set, loaded by path too
 
 
 def parse_args(argv=None):
@@ -40,12 +44,18 @@ def parse_args(argv=None):
     p.add_argument("--workers", type=int, default=2, help="SUMO processes (ParallelEnv workers, default 2)")
     p.add_argument("--sumo-safety", action="store_true", help="SUMO speed mode 95 instead of 0")
     p.add_argument("--no-torch", action="store_true", help="skip the torch comparison")
+    p.add_argument("--set", nargs="+", default=[], metavar="transforms.KEY=VALUE",
+                   help="deploy-time settings of the run's transforms (e.g. transforms.residual.envelope_fade_slack=1.0):"
+                        " a variant evaluated on both backends without retraining")
     p.add_argument("--out", required=True, help="output directory")
     return p.parse_args(argv)
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    from ring_generalization import apply_set, parse_set
+
+    settings_set = parse_set(args.set)  # a bad item stops here, before SUMO starts
     import torch
 
     from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state
@@ -60,7 +70,7 @@ def main(argv=None) -> dict:
 
     torch.set_num_threads(1)
     cfg, state = checkpoint_config(args.checkpoint)
-    cfg = eval_config(cfg, args.seconds)
+    cfg = eval_config(apply_set(cfg, settings_set), args.seconds)
     factory = policy_factory_from_state(cfg, state)
     ck = Path(args.checkpoint)
     run_dir = ck if ck.is_dir() else (ck.parent.parent if ck.parent.name == "checkpoints" else ck.parent)
@@ -73,7 +83,8 @@ def main(argv=None) -> dict:
     rep_s, tr_s = evaluate_on_sumo(cfg, policy_factory=factory, workers=args.workers, sumo_safety=args.sumo_safety,
                                    **kw)
     wall_s = time.perf_counter() - t0
-    rep_s.update(policy=str(args.checkpoint), transforms=list(cfg.transforms.chain), wall_seconds=wall_s)
+    rep_s.update(policy=str(args.checkpoint), transforms=list(cfg.transforms.chain), set=list(args.set),
+                 wall_seconds=wall_s)
     title = f"{args.checkpoint} on SUMO (speed mode {mode}), {secs:g} s episodes"
     write_report(rep_s, out, tr_s, title=title, plot_episode=cfg.eval.plot_episode, s_min=cfg.eval.s_min,
                  s_max=cfg.eval.s_max, run_dir=run_dir)
@@ -84,14 +95,16 @@ def main(argv=None) -> dict:
         t0 = time.perf_counter()
         rep_t, tr_t = evaluate_on_torch_seeds(cfg, policy_factory=factory, **kw)
         wall_t = time.perf_counter() - t0
-        rep_t.update(policy=str(args.checkpoint), transforms=list(cfg.transforms.chain), wall_seconds=wall_t)
+        rep_t.update(policy=str(args.checkpoint), transforms=list(cfg.transforms.chain), set=list(args.set),
+                     wall_seconds=wall_t)
         write_report(rep_t, out / "torch", tr_t, title=f"{args.checkpoint} on torch, {secs:g} s episodes",
                      plot_episode=cfg.eval.plot_episode, s_min=cfg.eval.s_min, s_max=cfg.eval.s_max)
         _note(out / "torch" / "report.md", rep_t, wall_t)
         reports = {"torch": rep_t, "sumo": rep_s}
 
     table = comparison_markdown(reports)
-    head = (f"policy `{args.checkpoint}`, profiles {list(rep_s['profiles'])}, {rep_s['episodes_per_profile']} "
+    deployed = f" with {' '.join(args.set)}" if args.set else ""
+    head = (f"policy `{args.checkpoint}`{deployed}, profiles {list(rep_s['profiles'])}, {rep_s['episodes_per_profile']} "
             f"episodes each, seeds {rep_s['episode_seeds']}, {secs:g} s episodes, SUMO speed mode {mode}; "
             "min gap = min over episodes, max head gap = max, others = mean over episodes")
     (out / "comparison.md").write_text(head + "\n\n" + table + "\n")

@@ -226,6 +226,9 @@ class DriveOffConfig:
     ``residual_play`` (m/s^2, > 0, or null): while the cap is engaged, the learned residual's term passes through
     a backlash of this half-width (``transforms.ResidualAction(play=..., play_key=("drive_off", "engaged"))``): it
     holds its level and drops the policy's small reversals behind a leader that drives off; null (the default): off.
+    ``residual_play_release`` (s, > 0, or null): when the cap releases, the backlash's half-width shrinks to 0 over
+    this time instead of at once (``ResidualAction(play_release=...)``), so the held term reaches the policy's
+    without a step; null (the default): at once.
     ``follow`` (share, in (0, 1.5], or null): while the cap is engaged and the leader accelerates by more than
     ``follow_above`` (m/s^2), the command is at least ``min(follow * a_leader, cap)``: the CAV keeps up with a long
     drive-off from its start; null (the default): off.
@@ -239,6 +242,7 @@ class DriveOffConfig:
     standstill: float = 0.5  # m/s: the car and its leader both below it engage the cap
     when: str = "deploy"  # "always" or "deploy"
     residual_play: float | None = None  # m/s^2: the residual's backlash while the cap is engaged; null: off
+    residual_play_release: float | None = None  # s: the backlash's width shrinks to 0 over this after the release
     follow: float | None = None  # share of the leader's acceleration kept as a floor while engaged; null: off
     follow_above: float = 0.3  # m/s^2: the leader's acceleration above which that floor holds
 

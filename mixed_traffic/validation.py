@@ -151,6 +151,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.drive_off.standstill": Real(0, 5, lo_open=True),
     "transforms.residual.drive_off.when": OneOf(("always", "deploy")),
     "transforms.residual.drive_off.residual_play": Real(0, 3, lo_open=True, optional=True),
+    "transforms.residual.drive_off.residual_play_release": Real(0, 600, lo_open=True, optional=True),
     "transforms.residual.drive_off.follow": Real(0, 1.5, lo_open=True, optional=True),
     "transforms.residual.drive_off.follow_above": Real(0, 3),
     "transforms.residual.join.gap": Real(0, 200, lo_open=True),
@@ -378,6 +379,10 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                 and OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is None):
             raise ConfigError(f"transforms.residual.envelope_fade_slack_{gate}", "set with envelope_fade_slack null",
                               f"null, or {what} with an envelope_fade_slack")
+    if (OmegaConf.select(cfg, "transforms.residual.drive_off.residual_play_release", default=None) is not None
+            and OmegaConf.select(cfg, "transforms.residual.drive_off.residual_play", default=None) is None):
+        raise ConfigError("transforms.residual.drive_off.residual_play_release", "set with residual_play null",
+                          "null, or a time (s, > 0) with a residual_play")
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs import Compose, TransformedEnv
+from torchrl.data import Binary
+from torchrl.envs import Compose, Transform, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from mixed_traffic import make_env
@@ -269,6 +270,68 @@ def test_a_partial_reset_keeps_the_other_rows_held_residual():
                        batch_size=[2])
     out = res._reset(state, TensorDict({}, batch_size=[2]))
     torch.testing.assert_close(out["residual", "held"], torch.tensor([[0.0], [0.4]]))
+
+
+class _ScriptedKey(Transform):
+    """Writes ``("drive_off", "engaged")``: true at reset and after the first ``steps - 1`` steps, false after."""
+
+    def __init__(self, steps: int):
+        super().__init__()
+        self.steps, self.k = steps, 0
+
+    def _reset(self, tensordict, tensordict_reset):
+        self.k = 0
+        on = torch.ones(*tensordict_reset.batch_size, 1, dtype=torch.bool)
+        return tensordict_reset.set(("drive_off", "engaged"), on)
+
+    def _step(self, tensordict, next_tensordict):
+        self.k += 1
+        on = torch.full((*next_tensordict.batch_size, 1), self.k < self.steps, dtype=torch.bool)
+        return next_tensordict.set(("drive_off", "engaged"), on)
+
+    def transform_observation_spec(self, observation_spec):
+        observation_spec[("drive_off", "engaged")] = Binary(n=1, shape=(*observation_spec.shape, 1), dtype=torch.bool)
+        return observation_spec
+
+
+def test_the_release_fade_lets_the_held_term_reach_the_policys_over_play_release():
+    """When the key turns false the held 0.2 reaches the policy's 0.1 in steps of 0.02 over 0.5 s (play 0.1, 5 steps
+    of 0.1 s), not in one step of 0.1; without play_release it drops at once. The share counts down with it."""
+    script = [0.3, 0.3, 0.25, 0.25] + [0.1] * 6
+
+    def run(release):
+        base = make_env("ring", batch_size=1, seed=0)
+        res = ResidualAction(_zero_base(), weight=1.0, play=0.1, play_key=("drive_off", "engaged"),
+                             play_release=release, dt=base.scenario.dt)
+        env = TransformedEnv(base, Compose(_ScriptedKey(4), res))
+        check_env_specs(env)
+        it = iter(script)
+        return env.rollout(len(script), lambda td: td.set("action", torch.full((1, 1), next(it))))
+
+    faded = run(0.5)
+    torch.testing.assert_close(faded["next", "cav", "accel"][0, :, 0],
+                               torch.tensor([0.2, 0.2, 0.2, 0.2, 0.18, 0.16, 0.14, 0.12, 0.1, 0.1]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(faded["next", "residual", "play_share"][0, :, 0],
+                               torch.tensor([1.0, 1.0, 1.0, 1.0, 0.8, 0.6, 0.4, 0.2, 0.0, 0.0]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(run(None)["next", "cav", "accel"][0, :, 0],
+                               torch.tensor([0.2, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]), atol=1e-5, rtol=0)
+
+
+def test_the_release_fade_composes_from_config_and_needs_the_backlash():
+    """``transforms.residual.drive_off.residual_play_release`` reaches the deployed ResidualAction; set without a
+    backlash, or out of range, it is refused naming the field and the allowed range."""
+    key = "transforms.residual.drive_off.residual_play_release"
+    cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", f"{key}=10.0"]))
+    env = make_transformed_env(cfg, num_envs=2, seed=0, deploy=True)
+    check_env_specs(env)
+    res = next(t for t in env.transform if isinstance(t, ResidualAction))
+    assert res.play_release == 10.0 and res.dt == env.base_env.scenario.dt
+    with pytest.raises(ConfigError, match=rf"{key}: set with residual_play null; allowed: null, or a time"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_safety_net", f"{key}=10.0"]))
+    with pytest.raises(ConfigError, match=rf"{key}: 0.0 is out of range"):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", f"{key}=0.0"]))
+    with pytest.raises(ValueError, match=r"ResidualAction: play_release=5.0 is invalid; allowed: > 0 \(s\) with a play_key"):
+        ResidualAction(_zero_base(), play=0.1, play_release=5.0)
 
 
 # the floor from the leader's drive-off (DriveOffCap(follow=...), transforms.residual.drive_off.follow)

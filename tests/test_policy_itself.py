@@ -448,6 +448,27 @@ def test_generalization_set_evaluates_a_deployed_variant_without_retraining(tmp_
     assert not (tmp_path / "bad").exists()
 
 
+def test_policy_on_sumo_set_deploys_a_variant_on_both_backends(tmp_path, benchmark_script):
+    """benchmarks/ring_policy_on_sumo.py --set: the run's transforms with that setting on SUMO and on torch, recorded in
+    both reports; a typo or a value out of range stops the script before SUMO starts, naming the item."""
+    import json
+
+    run = _tiny_scratch_run(tmp_path / "run")
+    mod = benchmark_script("ring_policy_on_sumo")
+    common = ["--checkpoint", str(run), "--episodes", "1", "--seconds", "3", "--profiles", "random_steps",
+              "--workers", "0"]
+    item = "transforms.safety_layer.deployed_s_max=false"
+    reports = mod.main([*common, "--set", item, "--out", str(tmp_path / "v")])
+    assert reports["sumo"]["set"] == reports["torch"]["set"] == [item]
+    assert json.loads((tmp_path / "v" / "report.json").read_text())["set"] == [item]
+    assert f"with {item}" in (tmp_path / "v" / "comparison.md").read_text()
+    for bad, said in ((["transforms.safety_layer.s_mni=4"], "transforms.safety_layer.s_mni: not a setting"),
+                      (["transforms.safety_layer.s_min=-1"], "--set transforms.safety_layer.s_min")):
+        with pytest.raises(SystemExit, match=said):
+            mod.main([*common, "--set", *bad, "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_path, benchmark_script):
     """benchmarks/ring_generalization.py --baselines-with-layer: each baseline runs again behind the
     trained run's safety layer on the same episodes; the layer's work shows in its row (IDM-as-CAV

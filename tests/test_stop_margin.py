@@ -83,15 +83,12 @@ def test_the_gate_needs_a_margin_and_positive_thresholds():
         ResidualAction(_base(run), slack_brake=1.0)
 
 
-def test_the_default_is_join_with_the_margin_fade_at_a_stop_at_deployment_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_stop_margin`` (the default) is ``ring_lagrangian_ppo_join`` with
+def test_stop_margin_is_join_with_the_margin_fade_at_a_stop_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_stop_margin`` (the previous default) is ``ring_lagrangian_ppo_join`` with
     ``envelope_fade_slack: 1`` behind leaders below 2 m/s or braking harder than 1 m/s^2; it acts at deployment only, so training builds the
     join's chain and trains the same weights."""
     from omegaconf import OmegaConf, open_dict
 
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
-
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_stop_margin"
     d, prev = (validate_config(compose([f"experiment={n}"]))
                for n in ("ring_lagrangian_ppo_stop_margin", "ring_lagrangian_ppo_join"))
     r = d.transforms.residual

@@ -79,6 +79,12 @@ class ResidualAction(Transform):
             backlash acts only where it is true, and elsewhere the term passes as the policy gives it (default
             None: everywhere).
         held_key: where the backlash keeps the term it executed (default ``("residual", "held")``).
+        play_release: with ``play_key``, the backlash does not end at once where the key turns false: its
+            half-width shrinks linearly from ``play`` to 0 over these seconds (> 0), so the term executed reaches
+            the policy's over that time instead of within one step (default None: at once). Its state, the share
+            of ``play`` still held, travels in the tensordict (``share_key``).
+        share_key: where that share is kept (default ``("residual", "play_share")``).
+        dt: the env's step (s, > 0), read with ``play_release``.
 
     Example:
         >>> from mixed_traffic import make_env
@@ -103,7 +109,9 @@ class ResidualAction(Transform):
                  slack_below: float | None = None, slack_brake: float | None = None,
                  leader_speed_key: NestedKey = ("cav", "leader_speed"),
                  leader_accel_key: NestedKey = ("cav", "leader_accel"), play: float | None = None,
-                 play_key: NestedKey | None = None, held_key: NestedKey = ("residual", "held")):
+                 play_key: NestedKey | None = None, held_key: NestedKey = ("residual", "held"),
+                 play_release: float | None = None, share_key: NestedKey = ("residual", "play_share"),
+                 dt: float = 0.1):
         if not weight >= 0:
             raise ValueError(f"ResidualAction: weight={weight!r} is invalid; allowed: >= 0")
         if not engage_seconds >= 0:
@@ -128,8 +136,15 @@ class ResidualAction(Transform):
             raise ValueError(f"ResidualAction: play={play!r} is invalid; allowed: > 0 (m/s^2), or None")
         if play_key is not None and play is None:
             raise ValueError("ResidualAction: play_key without play; give play (m/s^2) or drop play_key")
+        if play_release is not None and not (play_key is not None and play_release > 0):
+            raise ValueError(f"ResidualAction: play_release={play_release!r} is invalid; allowed: > 0 (s) with a "
+                             "play_key, or None")
+        if not dt > 0:
+            raise ValueError(f"ResidualAction: dt={dt!r} is invalid; allowed: > 0 (s)")
         super().__init__(in_keys=[], out_keys=[base_action_key], in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.play, self.play_key, self.held_key = None if play is None else float(play), play_key, held_key
+        self.play_release = None if play_release is None else float(play_release)
+        self.share_key, self.dt = share_key, float(dt)
         self.policy_bounds = None if policy_bounds is None else (float(policy_bounds[0]), float(policy_bounds[1]))
         self.base = base
         self.weight = float(weight)
@@ -234,21 +249,40 @@ class ResidualAction(Transform):
             if on is None:
                 raise RuntimeError(f"ResidualAction: play_key {self.play_key!r} is not in the step's input; put the "
                                    "transform that writes it (e.g. DriveOffCap) in the chain")
-            played = torch.where(on.reshape(residual.shape), played, residual)
+            on = on.reshape(residual.shape)
+            if self.play_release is None:
+                played = torch.where(on, played, residual)
+            else:  # after the key turns false the half-width shrinks to 0 over play_release seconds
+                share = tensordict.get(self.share_key, None)
+                if share is None:
+                    raise RuntimeError("ResidualAction: the step's input has no play share (play_release); reset the "
+                                       "env through the TransformedEnv before stepping it")
+                share = torch.where(on, torch.ones_like(residual),
+                                    (share.to(residual.dtype).reshape(residual.shape)
+                                     - self.dt / self.play_release).clamp_min(0.0))
+                width = self.play * share
+                played = torch.where(on, played, torch.minimum(torch.maximum(held, residual - width), residual + width))
+                tensordict.set(self.share_key, share)
         tensordict.set(self.held_key, played.detach())
         return played
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        return carry_to_next(tensordict, next_tensordict, self.base_action_key, self.held_key)
+        return carry_to_next(tensordict, next_tensordict, self.base_action_key, *self._state_keys())
+
+    def _state_keys(self) -> tuple:
+        """The backlash's state: its held term, and with ``play_release`` the share of ``play`` still held."""
+        if self.play is None:
+            return ()
+        return (self.held_key,) if self.play_release is None else (self.held_key, self.share_key)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         tensordict_reset.set(self.base_action_key, action_shaped_full(self.parent, self.action_key, 0.0))
-        if self.play is not None:
-            held = action_shaped_full(self.parent, self.action_key, 0.0)
-            keep = kept_rows(tensordict, held, self.held_key)
+        for key in self._state_keys():  # the backlash's held term and share, 0 at a reset
+            state = action_shaped_full(self.parent, self.action_key, 0.0)
+            keep = kept_rows(tensordict, state, key)
             if keep is not None:  # rows not reset keep their state
-                held = torch.where(keep, tensordict.get(self.held_key).to(held), held)
-            tensordict_reset.set(self.held_key, held)
+                state = torch.where(keep, tensordict.get(key).to(state), state)
+            tensordict_reset.set(key, state)
         return tensordict_reset
 
     def transform_action_spec(self, action_spec):
@@ -258,8 +292,8 @@ class ResidualAction(Transform):
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         observation_spec = with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.base_action_key)
-        if self.play is not None:
-            observation_spec = with_action_shaped_entry(observation_spec, self.parent, self.action_key, self.held_key)
+        for key in self._state_keys():
+            observation_spec = with_action_shaped_entry(observation_spec, self.parent, self.action_key, key)
         return observation_spec
 
     def __repr__(self) -> str:
@@ -270,4 +304,5 @@ class ResidualAction(Transform):
         room += f", slack_below={self.slack_below}" if self.slack_below is not None else ""
         room += f", slack_brake={self.slack_brake}" if self.slack_brake is not None else ""
         room += f", play={self.play}" + (f" while {self.play_key}" if self.play_key is not None else "") if self.play else ""
+        room += f", play_release={self.play_release}" if self.play_release is not None else ""
         return f"{type(self).__name__}(weight={self.weight}{engage}{fade}{room}, base={type(self.base).__name__})"

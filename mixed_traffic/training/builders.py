@@ -277,7 +277,9 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
                                   fade_speeds=None if fade is None else tuple(fade), room_key=room_key,
                                   slack_key=slack_key, fade_slack=fade_slack, **gate, play=play,
-                                  play_key=None if play is None else ENGAGED)
+                                  play_key=None if play is None else ENGAGED,
+                                  play_release=None if play is None else r.drive_off.get("residual_play_release"),
+                                  dt=float(env.scenario.dt))
         join = join_blend(r, env, deploy=deploy)
         steps = [t for t in (cap, join) if t is not None]
         return [*steps, residual] if steps else residual  # the action passes the residual, the join, then the cap
