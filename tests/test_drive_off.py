@@ -272,6 +272,18 @@ def test_a_partial_reset_keeps_the_other_rows_held_residual():
     torch.testing.assert_close(out["residual", "held"], torch.tensor([[0.0], [0.4]]))
 
 
+def test_a_partial_reset_keeps_the_other_rows_release_share():
+    base = make_env("ring", batch_size=2, seed=0)
+    env = TransformedEnv(base, ResidualAction(_zero_base(), play=0.1, play_key=("drive_off", "engaged"),
+                                              play_release=5.0))
+    state = TensorDict({("residual", "held"): torch.tensor([[0.3], [0.4]]),
+                        ("residual", "play_share"): torch.tensor([[0.5], [0.7]]),
+                        "_reset": torch.tensor([[True], [False]])}, batch_size=[2])
+    out = env.transform._reset(state, TensorDict({}, batch_size=[2]))
+    torch.testing.assert_close(out["residual", "play_share"], torch.tensor([[0.0], [0.7]]))
+    torch.testing.assert_close(out["residual", "held"], torch.tensor([[0.0], [0.4]]))
+
+
 class _ScriptedKey(Transform):
     """Writes ``("drive_off", "engaged")``: true at reset and after the first ``steps - 1`` steps, false after."""
 
