@@ -374,15 +374,15 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and fade_mode == "off"):
         raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
-    for gate, what in (("below", "a leader speed (m/s, > 0)"), ("brake", "a leader deceleration (m/s^2, > 0)")):
-        if (OmegaConf.select(cfg, f"transforms.residual.envelope_fade_slack_{gate}", default=None) is not None
-                and OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is None):
-            raise ConfigError(f"transforms.residual.envelope_fade_slack_{gate}", "set with envelope_fade_slack null",
-                              f"null, or {what} with an envelope_fade_slack")
-    if (OmegaConf.select(cfg, "transforms.residual.drive_off.residual_play_release", default=None) is not None
-            and OmegaConf.select(cfg, "transforms.residual.drive_off.residual_play", default=None) is None):
-        raise ConfigError("transforms.residual.drive_off.residual_play_release", "set with residual_play null",
-                          "null, or a time (s, > 0) with a residual_play")
+    for field, needs, allowed in (  # a setting of another that must be on
+            ("envelope_fade_slack_below", "envelope_fade_slack",
+             "null, or a leader speed (m/s, > 0) with an envelope_fade_slack"),
+            ("envelope_fade_slack_brake", "envelope_fade_slack",
+             "null, or a leader deceleration (m/s^2, > 0) with an envelope_fade_slack"),
+            ("drive_off.residual_play_release", "drive_off.residual_play", "null, or a time (s, > 0) with a residual_play")):
+        if (OmegaConf.select(cfg, f"transforms.residual.{field}", default=None) is not None
+                and OmegaConf.select(cfg, f"transforms.residual.{needs}", default=None) is None):
+            raise ConfigError(f"transforms.residual.{field}", f"set with {needs.rpartition('.')[2]} null", allowed)
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:
