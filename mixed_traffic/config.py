@@ -161,6 +161,18 @@ class V2VChannelConfig:
 
 
 @dataclass
+class OnboardAccelConfig:
+    """``onboard_accel`` in the chain: the leader's acceleration from the CAV's own measurement of its speed
+    (``transforms.OnboardLeaderAccel``) wherever the V2V message it holds is older than ``after`` seconds (null:
+    always, a CAV without V2V). The estimate is the measured leader speed's change over a step, low-passed over
+    ``tau`` seconds (0: none). Put it after ``v2v_channel`` where the chain has one; the evaluation's link, noise
+    and filter (``eval.*``) come before the whole chain. Over the perfect link it replaces nothing."""
+
+    after: float | None = 1.0  # s
+    tau: float = 0.0  # s
+
+
+@dataclass
 class JerkLimitConfig:
     """``jerk_limit`` in the chain: the command moves at most ``max_jerk * dt`` from the current acceleration."""
 
@@ -480,6 +492,7 @@ class TransformsConfig:
     jerk_penalty: JerkPenaltyConfig = field(default_factory=JerkPenaltyConfig)
     jerk_limit: JerkLimitConfig = field(default_factory=JerkLimitConfig)
     v2v_channel: V2VChannelConfig = field(default_factory=V2VChannelConfig)
+    onboard_accel: OnboardAccelConfig = field(default_factory=OnboardAccelConfig)
     sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
     non_negative_reward: NonNegativeRewardConfig = field(default_factory=NonNegativeRewardConfig)
     profile_reward: ProfileRewardConfig = field(default_factory=ProfileRewardConfig)

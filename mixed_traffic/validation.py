@@ -30,7 +30,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from mixed_traffic.config import SPEED_LAWS
+from mixed_traffic.config import SPEED_LAWS, TransformsConfig
 
 DEBUG_ENV = "MT_DEBUG"
 
@@ -241,6 +241,8 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.v2v_channel.delay": Real(0, 10),
     "transforms.v2v_channel.loss": Real(0, 1),
     "transforms.v2v_channel.seed": Int(0),
+    "transforms.onboard_accel.after": Real(0, 60, optional=True),
+    "transforms.onboard_accel.tau": Real(0, 60),
     "transforms.sensor_noise.gap": Real(0, 10),
     "transforms.sensor_noise.speed": Real(0, 5),
     "transforms.sensor_noise.tau": Real(0, 60),
@@ -321,6 +323,12 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     (:func:`validate_config`); ``ConfigError`` naming a key the run's config does not have (a typo fails before
     anything runs) or a value out of range."""
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
+    for key, _ in pairs:  # a transform added since the run was trained: its node with the schema's defaults
+        node = key.split(".")[1] if key.count(".") >= 2 else None
+        if node is not None and cfg.get("transforms") is not None and node not in cfg.transforms:
+            schema = OmegaConf.structured(TransformsConfig)
+            if node in schema:
+                cfg.transforms[node] = OmegaConf.to_container(schema[node])
     for key, value in pairs:
         parent = key.rpartition(".")[0]
         is_param = parent.endswith(".params") and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))
@@ -404,6 +412,9 @@ def validate_config(cfg: DictConfig) -> DictConfig:
             and bool(OmegaConf.select(cfg, "transforms.sensor_noise.filter", default=False))):
         raise ConfigError("transforms.chain", f"{chain}: sensor_noise (with transforms.sensor_noise.filter) before "
                           "v2v_channel", "v2v_channel before sensor_noise, so that the filter reads the link as received")
+    if "onboard_accel" in chain and "v2v_channel" in chain and chain.index("v2v_channel") > chain.index("onboard_accel"):
+        raise ConfigError("transforms.chain", f"{chain}: onboard_accel before v2v_channel",
+                          "v2v_channel before onboard_accel, so that the estimate replaces the link's held message")
     for name in ("eval.v2v_delay", "transforms.v2v_channel.delay"):
         delay = OmegaConf.select(cfg, name, default=0.0)
         if is_real(delay) and delay > 0:

@@ -30,6 +30,7 @@ def _transform_types() -> dict:
         InterventionCost,
         JerkPenalty,
         NonNegativeReward,
+        OnboardLeaderAccel,
         ProfileNormalisedReward,
         ResidualAction,
         SafetyLayer,
@@ -43,7 +44,7 @@ def _transform_types() -> dict:
             "state_discretizer": StateDiscretizer, "barrier_force": BarrierForce, "residual_nmpc": ResidualNMPC,
             "conflict_cost": ConflictCost, "profile_reward": ProfileNormalisedReward,
             "counterfactual_reward": CounterfactualReward, "set_point": SetPointAction,
-            "blend": ControllerBlend}
+            "blend": ControllerBlend, "onboard_accel": OnboardLeaderAccel}
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)

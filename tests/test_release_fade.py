@@ -44,15 +44,12 @@ def test_the_release_fade_removes_the_step_where_the_cap_releases():
     assert float(faded[window].diff().abs().max()) < 0.002
 
 
-def test_the_default_is_stop_margin_with_a_10_s_release_at_deployment_and_nothing_else():
-    """``experiment=ring_lagrangian_ppo_release_fade`` (the default) is ``ring_lagrangian_ppo_stop_margin`` with the
-    backlash released over 10 s; it acts at deployment only, so training builds the same chain and trains the same
-    weights."""
+def test_release_fade_is_stop_margin_with_a_10_s_release_at_deployment_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_release_fade`` (which the default extends) is ``ring_lagrangian_ppo_stop_margin``
+    with the backlash released over 10 s; it acts at deployment only, so training builds the same chain and trains
+    the same weights."""
     from omegaconf import OmegaConf, open_dict
 
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
-
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_release_fade"
     d, prev = (validate_config(compose([f"experiment={n}"]))
                for n in ("ring_lagrangian_ppo_release_fade", "ring_lagrangian_ppo_stop_margin"))
     assert d.transforms.residual.drive_off.residual_play_release == 10.0

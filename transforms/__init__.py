@@ -16,6 +16,7 @@ from transforms.jerk_penalty import JerkPenalty
 from transforms.join import JoinBlend
 from transforms.lagrangian import LagrangeMultiplier, LagrangianPenalty
 from transforms.measurement_filter import MeasurementFilter
+from transforms.onboard_accel import OnboardLeaderAccel
 from transforms.residual import ResidualAction
 from transforms.rewards import NonNegativeReward, ProfileNormalisedReward, QuadraticReward
 from transforms.safety_layer import SafetyLayer
@@ -46,4 +47,5 @@ __all__ = [
     "MeasurementFilter",
     "DriveOffCap",
     "JoinBlend",
+    "OnboardLeaderAccel",
 ]

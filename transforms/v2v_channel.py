@@ -5,7 +5,9 @@ V2V link. A controller that reads it (CACC, the residual base's ``brake_floor``)
 link, so the evaluation can degrade it: every message arrives ``delay_steps`` steps late, and each is lost
 with probability ``loss``, the receiver then holding the last message it got (zero-order hold, as a CAV
 without a fresh packet would). What the CAV measures itself (gap, own speed, leader speed) is untouched.
-TorchRL has no transform that delays or drops an entry, hence this one.
+The age of what the CAV holds (``("v2v", "age")``, in steps) travels with it, so a CAV can tell a silent link
+from a live one (:class:`transforms.OnboardLeaderAccel` reads it). TorchRL has no transform that delays or drops
+an entry, hence this one.
 """
 
 from __future__ import annotations
@@ -24,8 +26,10 @@ LEADER_ACCEL = ("cav", "leader_accel")
 class V2VChannel(Transform):
     """Delay ``accel_key`` by ``delay_steps`` steps and drop each message with probability ``loss``.
 
-    The entry is overwritten with what arrived; the sent values of the last ``delay_steps`` steps and the
-    last received value travel in the tensordict (``("v2v", "sent")``, ``("v2v", "held")``), so a row reset
+    The entry is overwritten with what arrived; the sent values of the last ``delay_steps`` steps, the last
+    received value and its age in steps since it was sent (``("v2v", "sent")``, ``("v2v", "held")``,
+    ``("v2v", "age")``: ``delay_steps`` when this step's message arrived, one more for every step lost since,
+    0 at reset) travel in the tensordict, so a row reset
     on its own starts its link afresh and a collector's rollouts carry the link's state. At reset the
     receiver holds the reset value, and the values still in flight are taken as that value. Losses are drawn
     per step and per CAV from the transform's own generator (``seed``), so two controllers evaluated on the
@@ -61,7 +65,7 @@ class V2VChannel(Transform):
         super().__init__(in_keys=[accel_key], out_keys=[accel_key])
         self.delay_steps, self.loss, self.seed, self.accel_key = int(delay_steps), float(loss), int(seed), accel_key
         self._gen = torch.Generator().manual_seed(self.seed)
-        self.sent_key, self.held_key = ("v2v", "sent"), ("v2v", "held")
+        self.sent_key, self.held_key, self.age_key = ("v2v", "sent"), ("v2v", "held"), ("v2v", "age")
 
     def _arrived(self, like: torch.Tensor) -> torch.Tensor:
         """Which messages of this step arrive (True), one draw per entry of ``like``."""
@@ -73,14 +77,16 @@ class V2VChannel(Transform):
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         now = tensordict_reset.get(self.accel_key)
         sent = now.unsqueeze(-1).expand(*now.shape, self.delay_steps).clone()
-        held = now.clone()
+        held, age = now.clone(), torch.zeros_like(now)
         keep = kept_rows(tensordict, now, self.sent_key)
         if keep is not None:  # rows not reset keep their link
             sent = torch.where(keep.unsqueeze(-1), tensordict.get(self.sent_key), sent)
             held = torch.where(keep, tensordict.get(self.held_key), held)
+            age = torch.where(keep, tensordict.get(self.age_key, age), age)
             tensordict_reset.set(self.accel_key, held)
         tensordict_reset.set(self.sent_key, sent)
         tensordict_reset.set(self.held_key, held)
+        tensordict_reset.set(self.age_key, age)
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -96,7 +102,11 @@ class V2VChannel(Transform):
         else:
             out = now
             next_tensordict.set(self.sent_key, sent)
-        held = torch.where(self._arrived(out), out, held)
+        arrived = self._arrived(out)
+        held = torch.where(arrived, out, held)
+        age = tensordict.get(self.age_key, None)
+        age = torch.zeros_like(held) if age is None else age
+        next_tensordict.set(self.age_key, torch.where(arrived, torch.full_like(age, self.delay_steps), age + 1))
         next_tensordict.set(self.held_key, held)
         next_tensordict.set(self.accel_key, held)
         return next_tensordict
@@ -112,6 +122,7 @@ class V2VChannel(Transform):
         observation_spec["v2v"] = Composite(
             sent=Unbounded(shape=(*leaf.shape, self.delay_steps), dtype=leaf.dtype, device=leaf.device),
             held=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
+            age=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
             shape=observation_spec.shape, device=observation_spec.device)
         return observation_spec
 

@@ -144,6 +144,18 @@ def _v2v_channel(tcfg, env):
                       loss=float(c.loss), seed=seed % 2**63)
 
 
+def _onboard_accel(tcfg, env):
+    from transforms import OnboardLeaderAccel
+
+    c = tcfg.get("onboard_accel")
+    if c is None:  # a run trained before the setting existed: its defaults
+        from mixed_traffic.config import OnboardAccelConfig
+
+        c = OnboardAccelConfig()
+    return OnboardLeaderAccel(dt=float(env.scenario.dt), after=None if c.after is None else float(c.after),
+                              tau=float(c.tau))
+
+
 def measurement_filter_for(sc, gap: float, speed: float, tau: float, **kwargs):
     """A :class:`transforms.MeasurementFilter` of ``gap`` m / ``speed`` m/s errors over ``tau`` s laid out for the
     scenario ``sc`` (its observation, ``s_max``, step, and which CAVs follow the head directly); ``kwargs`` go
@@ -396,6 +408,7 @@ TRANSFORMS: dict[str, Callable] = {
     "jerk_penalty": _jerk_penalty,
     "jerk_limit": _jerk_limit,
     "v2v_channel": _v2v_channel,
+    "onboard_accel": _onboard_accel,
     "sensor_noise": _sensor_noise,
     "state_discretizer": _state_discretizer,
     "barrier_force": _barrier_force,
