@@ -323,12 +323,13 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     (:func:`validate_config`); ``ConfigError`` naming a key the run's config does not have (a typo fails before
     anything runs) or a value out of range."""
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
-    for key, _ in pairs:  # a transform added since the run was trained: its node with the schema's defaults
-        node = key.split(".")[1] if key.count(".") >= 2 else None
-        if node is not None and cfg.get("transforms") is not None and node not in cfg.transforms:
-            schema = OmegaConf.structured(TransformsConfig)
-            if node in schema:
-                cfg.transforms[node] = OmegaConf.to_container(schema[node])
+    # a transform added since the run was trained, set or put in the chain here: its node with the schema's defaults
+    nodes = [key.split(".")[1] for key, _ in pairs if key.count(".") >= 2]
+    nodes += [n for key, value in pairs if key == "transforms.chain" and isinstance(value, list) for n in value]
+    schema = OmegaConf.structured(TransformsConfig)
+    for node in nodes:
+        if cfg.get("transforms") is not None and node not in cfg.transforms and isinstance(node, str) and node in schema:
+            cfg.transforms[node] = OmegaConf.to_container(schema[node])
     for key, value in pairs:
         parent = key.rpartition(".")[0]
         is_param = parent.endswith(".params") and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))

@@ -113,6 +113,12 @@ def test_a_run_trained_before_the_setting_existed_can_deploy_it():
     chain = "transforms.chain=[onboard_accel,non_negative_reward,safety_layer,residual_idm,intervention_cost,jerk_penalty]"
     out = with_deploy_overrides(cfg, parse_deploy_overrides([chain, "transforms.onboard_accel.tau=0.2"]))
     assert out.transforms.onboard_accel == {"after": 1.0, "tau": 0.2}
+    out = with_deploy_overrides(cfg, parse_deploy_overrides([chain]))  # put in the chain alone: the defaults
+    assert out.transforms.onboard_accel == {"after": 1.0, "tau": 0.0}
+    from mixed_traffic.training.builders import make_transformed_env
+
+    env = make_transformed_env(out, num_envs=1, seed=0, deploy=True)
+    assert [t.after for t in env.transform if isinstance(t, OnboardLeaderAccel)] == [1.0]
     with pytest.raises(ConfigError, match="transforms.onboard_acel.tau: not a setting of the run's config"):
         with_deploy_overrides(cfg, parse_deploy_overrides(["transforms.onboard_acel.tau=0.2"]))
 

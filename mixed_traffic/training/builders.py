@@ -147,11 +147,7 @@ def _v2v_channel(tcfg, env):
 def _onboard_accel(tcfg, env):
     from transforms import OnboardLeaderAccel
 
-    c = tcfg.get("onboard_accel")
-    if c is None:  # a run trained before the setting existed: its defaults
-        from mixed_traffic.config import OnboardAccelConfig
-
-        c = OnboardAccelConfig()
+    c = tcfg.onboard_accel
     return OnboardLeaderAccel(dt=float(env.scenario.dt), after=None if c.after is None else float(c.after),
                               tau=float(c.tau))
 
