@@ -326,9 +326,10 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     # a transform added since the run was trained, set or put in the chain here: its node with the schema's defaults
     nodes = [key.split(".")[1] for key, _ in pairs if key.count(".") >= 2]
     nodes += [n for key, value in pairs if key == "transforms.chain" and isinstance(value, list) for n in value]
-    schema = OmegaConf.structured(TransformsConfig)
-    for node in nodes:
-        if cfg.get("transforms") is not None and node not in cfg.transforms and isinstance(node, str) and node in schema:
+    missing = [n for n in nodes if isinstance(n, str) and n not in (cfg.get("transforms") or {})]
+    if missing and cfg.get("transforms") is not None:
+        schema = OmegaConf.structured(TransformsConfig)
+        for node in (n for n in missing if n in schema):
             cfg.transforms[node] = OmegaConf.to_container(schema[node])
     for key, value in pairs:
         parent = key.rpartition(".")[0]

@@ -82,7 +82,7 @@ class V2VChannel(Transform):
         if keep is not None:  # rows not reset keep their link
             sent = torch.where(keep.unsqueeze(-1), tensordict.get(self.sent_key), sent)
             held = torch.where(keep, tensordict.get(self.held_key), held)
-            age = torch.where(keep, tensordict.get(self.age_key, age), age)
+            age = torch.where(keep, tensordict.get(self.age_key), age)
             tensordict_reset.set(self.accel_key, held)
         tensordict_reset.set(self.sent_key, sent)
         tensordict_reset.set(self.held_key, held)
@@ -91,9 +91,8 @@ class V2VChannel(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         now = next_tensordict.get(self.accel_key)
-        sent = tensordict.get(self.sent_key, None)
-        held = tensordict.get(self.held_key, None)
-        if sent is None or held is None:
+        sent, held, age = (tensordict.get(k, None) for k in (self.sent_key, self.held_key, self.age_key))
+        if sent is None or held is None or age is None:
             raise RuntimeError("V2VChannel: the step's input has no link state; reset the env through the "
                                "TransformedEnv before stepping it")
         if self.delay_steps:
@@ -104,8 +103,6 @@ class V2VChannel(Transform):
             next_tensordict.set(self.sent_key, sent)
         arrived = self._arrived(out)
         held = torch.where(arrived, out, held)
-        age = tensordict.get(self.age_key, None)
-        age = torch.zeros_like(held) if age is None else age
         next_tensordict.set(self.age_key, torch.where(arrived, torch.full_like(age, self.delay_steps), age + 1))
         next_tensordict.set(self.held_key, held)
         next_tensordict.set(self.accel_key, held)
