@@ -104,6 +104,24 @@ class CACCParams:
     e_max: float = 32.95  # the gap error counts up to this much (m): a long gap is closed at a capped rate
 
 
+@dataclass(frozen=True)
+class ClosingParams:
+    """A closing-speed law (:func:`closing_accel`): the car closes on (or opens to) a target gap with its closing
+    speed on a constant-deceleration arrival profile, a join law for a car that starts far behind its leader.
+
+    The defaults are the join of ``experiment=ring_lagrangian_ppo_closing_join`` (tried, not kept): picked at the
+    tuning seed 3000 among decelerations of 0.2, 0.25 and 0.3 m/s^2 (docs/results.md, "A join on a closing-speed
+    profile").
+    """
+
+    target: float = 25.0  # the gap the law arrives at (m)
+    decel: float = 0.25  # the arrival's constant deceleration (m/s^2)
+    closing_max: float = 6.0  # the largest closing speed asked for (m/s)
+    k: float = 0.5  # gain on the closing speed's error (1/s)
+    a_max: float = 2.0  # the law's largest acceleration (m/s^2)
+    ka_brake: float = 0.0  # share of the leader's braking (its acceleration where negative, over V2V) fed forward
+
+
 # The soft follower with gains that fall as 1/v above 11 m/s and a weaker answer to a slower leader: the
 # setting of a local search (benchmarks/ring_soft_search.py, on the frontier's five cases with a tuning seed,
 # 3000, that no report uses) over the family with brake_opening 0, kept with the linear law's braking
@@ -159,6 +177,34 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     beyond = (gap - ceil).clamp_min(0.0) - (floor - gap).clamp_min(0.0)  # 0 inside (and no band)
     linear = linear + ks_edge * beyond
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
+
+
+def closing_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor | None = None, *, target: Num, decel: Num,
+                  closing_max: Num, k: Num, a_max: Num, ka_brake: Num = 0.0, **_) -> Tensor:
+    """``min(ka_brake min(a_leader, 0) + k (u*(gap - target) - (v - v_leader)), a_max)``,
+    ``u*(e) = sign(e) min(closing_max, sqrt(2 decel |e|))``.
+
+    ``u*`` is the closing speed from which braking at ``decel`` matches the leader's speed just at ``target``:
+    followed, the car arrives with one constant gentle deceleration instead of IDM's late, harder one, and
+    from far behind it closes at up to ``closing_max``. Inside the target the same profile opens the gap. With
+    ``ka_brake`` the leader's braking (its acceleration where negative, received over V2V) is fed forward, so the
+    car does not close on a slowing leader faster than its profile asks (``a_leader`` is needed then); its
+    speeding up is not, so the command carries none of a head's steps up. In the last metres the
+    profile's slope grows without bound, so a car behind it brakes harder there (up to about 2.7 ``decel`` at ``k``
+    0.5) and settles with a small decaying swing; as a join law it has usually handed over before.
+
+    >>> round(float(closing_accel(torch.tensor(45.0), torch.tensor(22.0), torch.tensor(20.0), target=25.0,
+    ...                           decel=0.25, closing_max=6.0, k=0.5, a_max=2.0)), 3)
+    0.581
+    """
+    e = gap - target
+    u_star = torch.sign(e) * torch.sqrt(2.0 * decel * e.abs()).clamp(max=closing_max)
+    a = k * (u_star - (v - v_leader))
+    if ka_brake:
+        if a_leader is None:
+            raise ValueError("closing_accel: ka_brake > 0 feeds the leader's braking forward; pass a_leader")
+        a = a + ka_brake * a_leader.clamp(max=0.0)
+    return a.clamp(max=a_max)
 
 
 def cacc_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, ka: Num, kv: Num, ks: Num, s0: Num,

@@ -1,4 +1,4 @@
-"""Classical car-following models driving the CAV: IDM, OVM, a soft follower and CACC as policies.
+"""Classical car-following models driving the CAV: IDM, OVM, a soft follower, CACC and a closing-speed law as policies.
 
 Each is a ``TensorDictModule`` reading the env's ``("cav", "gap")``, ``("cav", "speed")``
 and ``("cav", "leader_speed")`` (CACC also ``("cav", "leader_accel")``, received over V2V) and
@@ -25,16 +25,18 @@ from torch import nn
 
 from mixed_traffic.physics import (
     CACCParams,
+    ClosingParams,
     IDMParams,
     OVMParams,
     SoftFollowerParams,
     cacc_accel,
     car_following_accel,
+    closing_accel,
     soft_follower_accel,
 )
 
-CLASSIC = ("idm", "ovm", "soft", "cacc")
-_PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams, "cacc": CACCParams}
+CLASSIC = ("idm", "ovm", "soft", "cacc", "closing")
+_PARAMS = {"idm": IDMParams, "ovm": OVMParams, "soft": SoftFollowerParams, "cacc": CACCParams, "closing": ClosingParams}
 LEADER_ACCEL_KEY = ("cav", "leader_accel")  # the leader's acceleration of the last step (V2V), read by CACC
 
 
@@ -88,7 +90,14 @@ class CarFollowingCAV(nn.Module):
                                       *((k, p[k] >= 0.0, ">= 0") for k in ("ka", "kv", "ks"))):
                 if not ok:
                     raise ValueError(f"cacc parameter {name} = {p[name]} is invalid; allowed: {allowed}")
-        self.reads_leader_accel = model == "cacc"
+        if model == "closing":
+            p = self.params
+            for name, ok, allowed in (("target", p["target"] > 0.0, "> 0 (m)"), ("decel", p["decel"] > 0.0, "> 0 (m/s^2)"),
+                                      ("closing_max", p["closing_max"] > 0.0, "> 0 (m/s)"), ("k", p["k"] > 0.0, "> 0 (1/s)"),
+                                      ("a_max", p["a_max"] > 0.0, "> 0 (m/s^2)"), ("ka_brake", p["ka_brake"] >= 0.0, ">= 0")):
+                if not ok:
+                    raise ValueError(f"closing parameter {name} = {p[name]} is invalid; allowed: {allowed}")
+        self.reads_leader_accel = model == "cacc" or (model == "closing" and self.params["ka_brake"] > 0.0)
         self.low, self.high = float(low), float(high)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
@@ -99,6 +108,8 @@ class CarFollowingCAV(nn.Module):
             a = cacc_accel(gap, speed, leader_speed, leader_accel, **self.params)
         elif self.model == "soft":
             a = soft_follower_accel(gap, speed, leader_speed, **self.params)
+        elif self.model == "closing":
+            a = closing_accel(gap, speed, leader_speed, leader_accel, **self.params)
         else:
             a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
         return a.clamp(self.low, self.high)
