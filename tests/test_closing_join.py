@@ -62,6 +62,8 @@ def test_the_leaders_braking_alone_is_fed_forward_when_asked():
     env = make_env("ring", batch_size=1, seed=0)
     assert ("cav", "leader_accel") not in make_classic_policy("closing", env).in_keys
     assert ("cav", "leader_accel") in make_classic_policy("closing", env, ka_brake=1.0).in_keys
+    with pytest.raises(ValueError, match=r"closing parameter ka_brake = -1.0 is invalid; allowed: >= 0"):
+        make_classic_policy("closing", env, ka_brake=-1.0)
 
 
 @pytest.mark.parametrize("name, value", [("target", 0.0), ("decel", -0.1), ("closing_max", 0.0), ("k", 0.0),
@@ -87,7 +89,7 @@ def test_from_the_long_start_it_joins_the_band_with_less_jerk_than_the_idm_join(
     closing, idm = (_drive(n, 73.4) for n in ("ring_lagrangian_ppo_closing_join", "ring_lagrangian_ppo_follow"))
     for td in (closing, idm):
         assert float(td["next", "cav", "gap"][0, 200:, 0].max()) <= 40.0  # in the band by the warm-up's end (20 s)
-        assert float(td["next", "cav", "gap"][0, :, 0].min()) > 20.0
+        assert float(td["next", "cav", "gap"][0, :, 0].min()) > 20.0  # neither closes past its target gap
     # the jerk of the join, as the scorecard counts it: the total variation of the executed acceleration
     tv = [float(td["next", "cav", "accel"][0, :, 0].diff().abs().sum()) for td in (closing, idm)]
     assert tv[0] < 0.85 * tv[1]
