@@ -52,6 +52,29 @@ def require_leader_accel(env, who: str) -> None:
                          "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
 
 
+def _param_checks(model: str, p: dict) -> tuple:
+    """``(name, ok, allowed)`` for each range a model's parameters must keep (none for IDM and OVM)."""
+    if model == "soft":
+        return (("brake_opening", 0.0 <= p["brake_opening"] <= 1.0, "[0, 1]"),
+                ("v_ref", p["v_ref"] > 0.0, "> 0 (inf: no scaling)"),
+                ("kv_closing_near", p["kv_closing_near"] >= 0.0, ">= 0 (0: off)"),
+                ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)"),
+                ("ks_edge", p["ks_edge"] >= 0.0, ">= 0 (0: off)"),
+                ("match_h_min", p["match_h_min"] >= 0.0, ">= 0 (0: a fixed floor)"),
+                ("match_h_max", p["match_h_max"] >= p["match_h_min"],
+                 f">= match_h_min ({p['match_h_min']}), so the band never narrows"),
+                ("match_gap_max", p["match_gap_max"] > max(p["match_gap_min"], 0.0),
+                 f"> match_gap_min ({p['match_gap_min']}) and > 0 (inf: off)"))
+    if model == "cacc":
+        return (("h", p["h"] >= 0.0, ">= 0 (s)"), ("e_max", p["e_max"] > 0.0, "> 0 (inf: no cap)"),
+                *((k, p[k] >= 0.0, ">= 0") for k in ("ka", "kv", "ks")))
+    if model == "closing":
+        return (("target", p["target"] > 0.0, "> 0 (m)"), ("decel", p["decel"] > 0.0, "> 0 (m/s^2)"),
+                ("closing_max", p["closing_max"] > 0.0, "> 0 (m/s)"), ("k", p["k"] > 0.0, "> 0 (1/s)"),
+                ("a_max", p["a_max"] > 0.0, "> 0 (m/s^2)"), ("ka_brake", p["ka_brake"] >= 0.0, ">= 0"))
+    return ()
+
+
 class CarFollowingCAV(nn.Module):
     """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules; CACC also reads
     the leader's acceleration (``model(gap, v, v_leader, a_leader)``; :attr:`reads_leader_accel`)."""
@@ -63,20 +86,9 @@ class CarFollowingCAV(nn.Module):
         self.model = model
         self.params = {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)
                        if getattr(params, f.name) is not None}  # None: the law's own default (soft kv_closing)
-        if model == "soft":
-            p = self.params
-            for name, ok, allowed in (("brake_opening", 0.0 <= p["brake_opening"] <= 1.0, "[0, 1]"),
-                                      ("v_ref", p["v_ref"] > 0.0, "> 0 (inf: no scaling)"),
-                                      ("kv_closing_near", p["kv_closing_near"] >= 0.0, ">= 0 (0: off)"),
-                                      ("gap_cap", p["gap_cap"] > 0.0, "> 0 (inf: no cap)"),
-                                      ("ks_edge", p["ks_edge"] >= 0.0, ">= 0 (0: off)"),
-                                      ("match_h_min", p["match_h_min"] >= 0.0, ">= 0 (0: a fixed floor)"),
-                                      ("match_h_max", p["match_h_max"] >= p["match_h_min"],
-                                       f">= match_h_min ({p['match_h_min']}), so the band never narrows"),
-                                      ("match_gap_max", p["match_gap_max"] > max(p["match_gap_min"], 0.0),
-                                       f"> match_gap_min ({p['match_gap_min']}) and > 0 (inf: off)")):
-                if not ok:
-                    raise ValueError(f"soft parameter {name} = {p[name]} is invalid; allowed: {allowed}")
+        for name, ok, allowed in _param_checks(model, self.params):
+            if not ok:
+                raise ValueError(f"{model} parameter {name} = {self.params[name]} is invalid; allowed: {allowed}")
         if gap_max is not None:
             if model != "idm":
                 raise ValueError(f"gap_max is an IDM controller's bound; {model!r} has none")
@@ -84,19 +96,6 @@ class CarFollowingCAV(nn.Module):
                 raise ValueError(f"gap_max must be above the standstill gap s0 = {self.params['s0']} m, "
                                  f"got {gap_max}")
             self.params["gap_max"] = float(gap_max)
-        if model == "cacc":
-            p = self.params
-            for name, ok, allowed in (("h", p["h"] >= 0.0, ">= 0 (s)"), ("e_max", p["e_max"] > 0.0, "> 0 (inf: no cap)"),
-                                      *((k, p[k] >= 0.0, ">= 0") for k in ("ka", "kv", "ks"))):
-                if not ok:
-                    raise ValueError(f"cacc parameter {name} = {p[name]} is invalid; allowed: {allowed}")
-        if model == "closing":
-            p = self.params
-            for name, ok, allowed in (("target", p["target"] > 0.0, "> 0 (m)"), ("decel", p["decel"] > 0.0, "> 0 (m/s^2)"),
-                                      ("closing_max", p["closing_max"] > 0.0, "> 0 (m/s)"), ("k", p["k"] > 0.0, "> 0 (1/s)"),
-                                      ("a_max", p["a_max"] > 0.0, "> 0 (m/s^2)"), ("ka_brake", p["ka_brake"] >= 0.0, ">= 0")):
-                if not ok:
-                    raise ValueError(f"closing parameter {name} = {p[name]} is invalid; allowed: {allowed}")
         self.reads_leader_accel = model == "cacc" or (model == "closing" and self.params["ka_brake"] > 0.0)
         self.low, self.high = float(low), float(high)
 
