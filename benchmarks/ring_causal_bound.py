@@ -33,6 +33,12 @@ relaxation of the steady RMSE bar R, so still a bound), or with ``--rmse-norm li
 (stricter than the bar: the optimum is then a causal controller that meets it, on these futures). Every
 row also gives its steady RMSE.
 
+``--own-cost RATIO`` adds the return: each future's own stage cost, the CAV's speed and gap terms of the
+ring's reward (:class:`~mixed_traffic.evaluation.oracle.OwnCost`), at most RATIO times IDM-as-CAV's on the
+same future, the CAV starting from IDM-as-CAV's settled gap (a relaxation by tangent lines, so still a bound).
+Every row gives its own cost against IDM-as-CAV's (the futures' mean of the ratios; below 1: the CAV's part
+of the return is higher).
+
 The tree is small (``options ** depth`` futures, the options being ``--speeds`` and a hold when ``--p-hold``
 > 0, of ``(depth + 1) epoch + tail`` seconds), so the bound is for this distribution and this horizon; a
 controller that must keep room for the next step of a long episode may pay more. The program grows quickly
@@ -44,6 +50,8 @@ with the tree (35,000 steps in all solve in about 90 s). Writes ``OUT/causal_bou
         --depth 2 --stop-gap 5 --out outputs/results/causal_bound/relative_d2_stop5                 # ~2 min
     python benchmarks/ring_causal_bound.py --stops --speeds 10 15 20 --depth 2 --gap 8 --stop-gap 5 \
         --rmse 0.2 --rmse-norm linf --out outputs/results/causal_bound/stops_d2_stop5_rmse_linf      # ~1 min
+    python benchmarks/ring_causal_bound.py --depth 2 --stop-gap 5 --v0 20 --speeds 17.333 20 22.667 --own-cost 1 \
+        --out outputs/results/causal_bound/rt20_d2_stop5_own1                                          # ~3 min
 """
 
 from __future__ import annotations
@@ -163,6 +171,9 @@ def main(argv=None) -> dict:
     p.add_argument("--rmse-norm", choices=("l1", "linf"), default="l1",
                    help="with --rmse: l1 (the mean |error|, the bound above) or linf (every steady sample within R m/s: "
                         "stricter than the RMSE bar, so the optimum is then a causal controller that meets it, not a bound)")
+    p.add_argument("--own-cost", type=float, default=None, metavar="RATIO",
+                   help="cap each future's own stage cost (the CAV's speed and gap terms of the return) at RATIO times "
+                        "IDM-as-CAV's on it; the CAV then starts from IDM-as-CAV's settled gap, not --gap")
     p.add_argument("--v0", type=float, default=24.0, help="the head's and the CAV's speed at the start (m/s)")
     p.add_argument("--gap", type=float, default=22.5, help="the CAV's gap at the start (m)")
     p.add_argument("--epoch", type=float, default=5.0, help="seconds between the head's decisions")
@@ -193,6 +204,7 @@ def main(argv=None) -> dict:
                               ("--stop-gap", a.stop_gap is None or a.stop_gap >= 0, ">= 0 (m)"),
                               ("--rate", a.rate > 0, "> 0 (m/s^2)"), ("--holds", min(a.holds) >= 0, ">= 0 (s)"),
                               ("--stop", min(a.stop) >= 0, ">= 0 (s)"), ("--rmse", a.rmse is None or a.rmse > 0, "> 0 (m/s)"),
+                              ("--own-cost", a.own_cost is None or a.own_cost > 0, "> 0"),
                               ("--time-limit", a.time_limit > 0, "> 0 (s)")):
         if not ok:
             raise SystemExit(f"{name} is invalid; allowed: {allowed}")
@@ -209,7 +221,7 @@ def main(argv=None) -> dict:
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
     from mixed_traffic.evaluation.harness import Trace, eval_scenario, steady_samples
-    from mixed_traffic.evaluation.oracle import causal_least_jerk, least_jerk
+    from mixed_traffic.evaluation.oracle import OwnCost, causal_least_jerk, least_jerk
     from mixed_traffic.evaluation.replay import replay
     from mixed_traffic.training.builders import residual_base
     from mixed_traffic.validation import validate_config
@@ -247,12 +259,6 @@ def main(argv=None) -> dict:
               accel_bounds=tuple(sc.cav_accel_bounds), a_prev=0.0)
     if a.stop_gap is not None:
         kw.update(stop_gap=a.stop_gap, leader_brake=-float(sc.head_accel_bounds[0]))
-    t0 = time.perf_counter()
-    stop_excess = None
-    if not a.replay_only:
-        print(f"{L} head futures of {N * dt:.0f} s ({L * N} steps): solving ...", flush=True)
-        bound = causal_least_jerk(heads, weights=w, end_speeds=heads[:, -1], time_limit=a.time_limit, **bar, **kw)
-    solve_s = time.perf_counter() - t0
 
     def weighted(x: torch.Tensor, weights: torch.Tensor) -> float:
         """The futures' weighted mean of ``x``, over those where it is defined (nan when none)."""
@@ -263,10 +269,59 @@ def main(argv=None) -> dict:
         """Per future: mean |a_t - a_{t-1}| / dt over the N counted steps (the command before them: ``before``)."""
         return torch.cat([before[:, None], accel], 1).diff(dim=1).abs().sum(1) / (N * dt)
 
+    P = int(round(60.0 / dt))  # the replayed controllers settle behind the head at v0 first
+    hp = torch.cat([heads.new_full((L, P), a.v0), heads], 1)
+    zero = torch.zeros(L, hp.shape[1])
+    trace = Trace(time=(torch.arange(hp.shape[1]) + 1).expand(L, -1) * dt, head_speed=hp.float(),
+                  cav_speed=zero + a.v0, cav_accel=zero, head_accel=torch.cat([zero[:, :1], hp.diff(dim=1).float() / dt], 1),
+                  gap=zero + a.gap, head_gap=zero + a.gap, valid=torch.ones_like(zero, dtype=torch.bool), raw_accel=zero)
+    # the env's v_eq after each counted step: the head's mean over the last v_eq_window seconds (the prefix at v0)
+    W = max(1, int(round(sc.v_eq_window / dt)))
+    csum = torch.cat([hp.new_zeros(L, 1), hp.cumsum(1)], 1)
+    idx = torch.arange(P, hp.shape[1])
+    v_eq = (csum[:, idx + 1] - csum[:, (idx + 1 - W).clamp_min(0)]) / (idx + 1).clamp_max(W)
+
+    def own_cap(i: int, budget: float) -> OwnCost:
+        return OwnCost(v_eq=v_eq[i], budget=budget, weight_v=sc.weight_v, weight_s=sc.weight_s, s_star=sc.s_star)
+
+    def own(speed: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
+        """Per future: the CAV's own stage cost (speed and gap terms) over the counted steps."""
+        return torch.stack([own_cap(i, 1.0).of(speed[i], gap[i]) for i in range(L)])
+
+    env = make_env("ring", batch_size=1, seed=0)
+    laws = {name: make_classic_policy(model, env, **over).module.double() for name, (model, over) in CLASSICAL.items()}
+    laws[f"{a.experiment}'s base{' (' + ' '.join(a.set) + ')' if a.set else ''}"] = \
+        residual_base(cfg.transforms.residual, env).module.double()
+    lo, hi = sc.cav_accel_bounds
+    driven, replayed = {}, {}  # name -> (speed, command, gap) after the prefix; its row
+    for name, law in laws.items():
+        m = replay(law, trace, dt=dt, low=lo, high=hi, warmup=0.0, settle=float(cfg.eval.settle_seconds))
+        speed, accel, gap = driven[name] = (m["speed"][:, P:], m["accel"][:, P:], m["gap"][:, P:])
+        per, per_rmse = mean_jerk(accel, m["accel"][:, P - 1]), steady_rmse(speed)
+        replayed[name] = {"jerk": float((per * w).sum()), "per_future": per,
+                          "gaps": (float(gap.min()), float(gap.max())), "collisions": int((gap <= 0).any(1).sum()),
+                          "rmse": weighted(per_rmse, w), "rmse_per_future": per_rmse,
+                          "own_cost_per_future": own(speed, gap)}
+    caps = None
+    if a.own_cost is not None:  # the reference's own cost per future, and the bound from the reference's start
+        ref_cost = replayed["IDM-as-CAV"]["own_cost_per_future"]
+        caps = [own_cap(i, a.own_cost * float(ref_cost[i])) for i in range(L)]
+        settled = driven["IDM-as-CAV"][2][:, 0] - dt * (heads[:, 0] - driven["IDM-as-CAV"][0][:, 0])
+        kw["gap_start"] = float(settled[0])
+        print(f"own cost capped at {a.own_cost:g} x IDM-as-CAV's; the bound starts from its settled gap "
+              f"{kw['gap_start']:.2f} m", flush=True)
+    t0 = time.perf_counter()
+    stop_excess = None
+    if not a.replay_only:
+        print(f"{L} head futures of {N * dt:.0f} s ({L * N} steps): solving ...", flush=True)
+        bound = causal_least_jerk(heads, weights=w, end_speeds=heads[:, -1], time_limit=a.time_limit,
+                                  own_costs=caps, **bar, **kw)
+    solve_s = time.perf_counter() - t0
+
     rows = {}
     if not a.replay_only:
-        clair = [least_jerk(h, end_speed=float(h[-1]), **({} if a.rmse is None else {**bar, "steady": steady[i]}), **kw)
-                 for i, h in enumerate(heads)]
+        clair = [least_jerk(h, end_speed=float(h[-1]), **({} if a.rmse is None else {**bar, "steady": steady[i]}),
+                            own_cost=None if caps is None else caps[i], **kw) for i, h in enumerate(heads)]
         if a.stop_gap is not None:  # the program keeps the stopping rule as linear pieces near the head's speed:
             # check the optimum against the rule itself (safe_accel_upper), from the second step on
             from transforms.safety_layer import safe_accel_upper
@@ -277,29 +332,19 @@ def main(argv=None) -> dict:
         bound_rmse = steady_rmse(bound.speed)
         rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
                                  "gaps": (float(bound.gap.min()), float(bound.gap.max())),
-                                 "rmse": weighted(bound_rmse, w), "rmse_per_future": bound_rmse},
+                                 "rmse": weighted(bound_rmse, w), "rmse_per_future": bound_rmse,
+                                 "own_cost_per_future": own(bound.speed, bound.gap)},
                 "clairvoyant": {"jerk": float((mean_jerk(torch.stack([c.accel for c in clair]), torch.zeros(L)) * w).sum()),
-                                "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w)}}
-    P = int(round(60.0 / dt))  # the replayed controllers settle behind the head at v0 first
-    hp = torch.cat([heads.new_full((L, P), a.v0), heads], 1)
-    zero = torch.zeros(L, hp.shape[1])
-    trace = Trace(time=(torch.arange(hp.shape[1]) + 1).expand(L, -1) * dt, head_speed=hp.float(),
-                  cav_speed=zero + a.v0, cav_accel=zero, head_accel=torch.cat([zero[:, :1], hp.diff(dim=1).float() / dt], 1),
-                  gap=zero + a.gap, head_gap=zero + a.gap, valid=torch.ones_like(zero, dtype=torch.bool), raw_accel=zero)
-    env = make_env("ring", batch_size=1, seed=0)
-    laws = {name: make_classic_policy(model, env, **over).module.double() for name, (model, over) in CLASSICAL.items()}
-    laws[f"{a.experiment}'s base{' (' + ' '.join(a.set) + ')' if a.set else ''}"] = \
-        residual_base(cfg.transforms.residual, env).module.double()
-    lo, hi = sc.cav_accel_bounds
-    driven = {}  # name -> (speed, command, gap) after the prefix
-    for name, law in laws.items():
-        m = replay(law, trace, dt=dt, low=lo, high=hi, warmup=0.0, settle=float(cfg.eval.settle_seconds))
-        speed, accel, gap = driven[name] = (m["speed"][:, P:], m["accel"][:, P:], m["gap"][:, P:])
-        per, per_rmse = mean_jerk(accel, m["accel"][:, P - 1]), steady_rmse(speed)
-        rows[name] = {"jerk": float((per * w).sum()), "per_future": per, "gaps": (float(gap.min()), float(gap.max())),
-                      "collisions": int((gap <= 0).any(1).sum()), "rmse": weighted(per_rmse, w),
-                      "rmse_per_future": per_rmse}
+                                "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w),
+                                "own_cost_per_future": own(torch.stack([c.speed for c in clair]),
+                                                           torch.stack([c.gap for c in clair]))}}
+    rows.update(replayed)
+    own_note = ("" if a.own_cost is None else
+                f", own cost <= {a.own_cost:g} x IDM-as-CAV's (from its settled gap, {kw['gap_start']:.2f} m)")
     ref = rows["IDM-as-CAV"]["jerk"]
+    ref_own = rows["IDM-as-CAV"]["own_cost_per_future"]
+    for r in rows.values():  # the own cost against IDM-as-CAV's, the futures' weighted mean of the ratios
+        r["own_cost"] = float((r["own_cost_per_future"] / ref_own * w).sum())
     checked = ("" if stop_excess is None else
                f" (the bound's largest command above the rule's own cap: {stop_excess:.1e} m/s^2)")
     if a.stops:
@@ -313,14 +358,15 @@ def main(argv=None) -> dict:
     lines = [f"{L} futures of {N * dt:.0f} s: {head}; band [{s_min}, {s_max}] m"
              f"{'' if a.stop_gap is None else f', stopping-safe at {a.stop_gap:g} m'}"
              f"{checked}"
-             f"{'' if a.rmse is None else f', speed error on steady samples ({a.rmse_norm}) <= {a.rmse:g} m/s'}; "
+             f"{'' if a.rmse is None else f', speed error on steady samples ({a.rmse_norm}) <= {a.rmse:g} m/s'}"
+             f"{own_note}; "
              + ("controllers replayed only" if a.replay_only else f"solved in {solve_s:.0f} s ({bound.status})"), "",
-             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) | steady RMSE (m/s) |",
-             "|---|---|---|---|---|"]
+             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) | steady RMSE (m/s) | own cost / IDM-as-CAV's |",
+             "|---|---|---|---|---|---|"]
     for name, r in rows.items():
         g = r.get("gaps")
         lines.append(f"| {name} | {r['jerk']:.4f} | {100 * (r['jerk'] / ref - 1):+.1f} % | "
-                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} | {r['rmse']:.3f} |")
+                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} | {r['rmse']:.3f} | {r['own_cost']:.3f} |")
     md = "\n".join(lines)
     print(md)
     out = Path(a.out)

@@ -6,6 +6,7 @@ import torch
 
 from mixed_traffic.evaluation.harness import abs_jerk
 from mixed_traffic.evaluation.oracle import (
+    OwnCost,
     causal_least_jerk,
     history_groups,
     least_jerk,
@@ -384,6 +385,49 @@ def test_heads_no_causal_controller_can_follow_in_the_band_are_reported():
                           accel_bounds=(-1.0, 1.0))
 
 
+def _v_eq(head, window=200):
+    """The env's v_eq after each step: the head's mean over the last ``window`` steps."""
+    return torch.stack([head[max(0, t - window + 1):t + 1].mean() for t in range(len(head))])
+
+
+def test_an_own_cost_cap_trades_jerk_for_the_return_and_holds_on_the_true_cost():
+    head = _step_head(20.0, 24.0, 100, 400)
+    kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0, a_prev=0.0, end_speed=24.0)
+    free = least_jerk(head, **kw)
+    cost = OwnCost(v_eq=_v_eq(head), budget=1.0)
+    spent = float(cost.of(free.speed, free.gap))
+    jerks = []
+    for share in (0.5, 0.3, 0.2):
+        r = least_jerk(head, own_cost=OwnCost(v_eq=_v_eq(head), budget=share * spent), **kw)
+        # the tangents under-estimate each square by at most w d^2 / 4 a step (d = 2 m and 1 m/s here)
+        assert float(cost.of(r.speed, r.gap)) <= share * spent + len(head) * (0.5 + 0.25)
+        assert float(cost.of(r.speed, r.gap)) > 0.9 * share * spent  # the cap binds: the free plan spends more
+        jerks.append(r.jerk)
+    assert free.jerk < jerks[0] < jerks[1] < jerks[2]  # each tighter cap costs jerk (the free plan spends more)
+    with pytest.raises(ValueError, match="no command sequence"):
+        least_jerk(head, own_cost=OwnCost(v_eq=_v_eq(head), budget=1.0), **kw)  # the speed step alone costs more
+    with pytest.raises(ValueError, match="own_cost.budget"):
+        least_jerk(head, own_cost=OwnCost(v_eq=_v_eq(head), budget=0.0), **kw)
+    with pytest.raises(ValueError, match="own_cost.v_eq"):
+        least_jerk(head, own_cost=OwnCost(v_eq=_v_eq(head)[:-1], budget=1.0), **kw)
+
+
+def test_the_causal_bound_with_own_costs_counts_the_same_jerk_and_caps_each_head():
+    heads = _futures()
+    kw = {**CAUSAL_KW, "a_prev": 0.5}  # the change from a_prev counts: the own-cost columns that follow must not
+    loose = [OwnCost(v_eq=_v_eq(h), budget=1e9, s_star=20.0) for h in heads]
+    plain = causal_least_jerk(heads, **kw)
+    assert causal_least_jerk(heads, own_costs=loose, **kw).jerk == pytest.approx(plain.jerk, abs=1e-7)
+    spent = torch.stack([c.of(plain.speed[i], plain.gap[i]) for i, c in enumerate(loose)])
+    tight = [OwnCost(v_eq=_v_eq(h), budget=0.5 * float(spent[i])) for i, h in enumerate(heads)]
+    r = causal_least_jerk(heads, own_costs=tight, **kw)
+    assert r.jerk > plain.jerk
+    for i, c in enumerate(tight):
+        assert float(c.of(r.speed[i], r.gap[i])) <= c.budget + heads.shape[1] * 0.75
+    with pytest.raises(ValueError, match="own_costs"):
+        causal_least_jerk(heads, own_costs=tight[:2], **kw)
+
+
 def test_the_step_tree_drives_the_head_as_the_ring_does(benchmark_script):
     tree = benchmark_script("ring_causal_bound").step_tree
     heads, w, choices = tree(speeds=[20.0, 27.0], v0=24.0, epoch=5.0, depth=2, p_hold=0.5, tail=5.0, dt=DT,
@@ -438,6 +482,13 @@ def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path
     assert all(rows[k]["collisions"] == 0 for k in mod.CLASSICAL)
     text = (tmp_path / "causal_bound.md").read_text()
     assert text.startswith("3 futures of 20 s") and "solved in" in text.splitlines()[0] and text.count("|") > 20
+    capped = mod.main(["--depth", "1", "--epoch", "5", "--tail", "10", "--speeds", "22", "26", "--own-cost", "0.9",
+                       "--out", str(tmp_path)])["rows"]
+    assert rows["IDM-as-CAV"]["own_cost"] == pytest.approx(1.0) == capped["IDM-as-CAV"]["own_cost"]
+    assert capped["causal bound"]["own_cost"] <= 0.9 + 0.05 and capped["causal bound"]["jerk"] > rows["causal bound"]["jerk"]
+    assert "own cost <= 0.9 x IDM-as-CAV's" in (tmp_path / "causal_bound.md").read_text()
+    with pytest.raises(SystemExit, match="--own-cost"):
+        mod.main(["--own-cost", "0", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="--gap"):
         mod.main(["--gap", "50", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="--stop-gap"):

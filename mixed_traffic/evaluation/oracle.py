@@ -50,6 +50,39 @@ class OracleResult:
     braked: int = 0
 
 
+@dataclass(frozen=True)
+class OwnCost:
+    """A cap on the CAV's own share of the ring's stage cost (``reward="deeplcc"``,
+    :func:`mixed_traffic.envs.traffic.stage_terms`): over the plan's steps,
+    ``sum_t w_v (v_t - v_eq_t)^2 + w_s (g_t - s*)^2 <= budget``. The return is made of that cost
+    (``1 - J / J_max`` a step), so a budget taken from a reference controller's own terms on the same head asks
+    for the CAV's part of a return at least as high as that controller's. The humans' speed terms are left
+    out (the program does not model them), as is the command's ``w_u a^2`` (a dropped term loosens the cap).
+
+    Each square enters as the maximum of its tangent lines at ``gap_points`` (m from ``s_star``) and
+    ``speed_points`` (m/s from ``v_eq``), a piecewise-linear under-estimate: the capped program is then a
+    relaxation of the true cap, and its least jerk is still a lower bound under it; the points' spacing
+    sets how loose (a spacing ``d`` under-estimates ``w (x - x0)^2`` by at most ``w d^2 / 4`` a step).
+
+    ``v_eq``: ``[N]``, the speed the env takes errors around after each step (the head's mean over the last
+    ``v_eq_window`` seconds); ``budget`` > 0.
+    """
+
+    v_eq: object
+    budget: float
+    weight_v: float = 1.0
+    weight_s: float = 0.5
+    s_star: float = 20.0
+    gap_points: tuple = tuple(float(x) for x in range(-15, 22, 2))
+    speed_points: tuple = tuple(float(x) for x in range(-6, 7))
+
+    def of(self, speed, gap) -> torch.Tensor:
+        """The true capped cost of a driven ``speed`` and ``gap`` (``[..., N]``), summed over the last dim."""
+        v_eq = torch.as_tensor(self.v_eq, dtype=torch.float64)
+        speed, gap = torch.as_tensor(speed, dtype=torch.float64), torch.as_tensor(gap, dtype=torch.float64)
+        return (self.weight_v * (speed - v_eq) ** 2 + self.weight_s * (gap - self.s_star) ** 2).sum(-1)
+
+
 def _check(name: str, ok: bool, allowed: str, got) -> None:
     if not ok:
         raise ValueError(f"least_jerk: {name} must be {allowed}, got {got!r}")
@@ -60,7 +93,7 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
                steady=None, rmse: float | None = None, norm: str = "l1", stop_gap: float | None = None,
                leader_brake: float | None = None, time_limit: float = 120.0, a_prev: float | None = None,
                end_speed: float | None = None, band_weight: float | None = None,
-               track_weight: float | None = None) -> OracleResult:
+               track_weight: float | None = None, own_cost: OwnCost | None = None) -> OracleResult:
     """Solve the episode's least-jerk program (module docstring).
 
     Four options serve a plan over a window of an episode (:func:`preview_least_jerk`): ``a_prev`` (m/s^2),
@@ -68,7 +101,8 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     (m/s >= 0), the speed the last step must end at; ``band_weight`` (> 0), the band made soft: each metre
     outside ``[s_min, s_max]`` on a step costs that much command change (m/s^2), so a plan exists whatever the
     start (``gap_floor`` stays hard); ``track_weight`` (> 0), each m/s of ``|v - v_head|`` on a step costs that
-    much command change (a plan that tracks the head as well as it smooths).
+    much command change (a plan that tracks the head as well as it smooths). ``own_cost``
+    (:class:`OwnCost`): the CAV's own share of the stage cost capped over the episode (the return bar).
 
     ``stop_gap`` (m; with ``leader_brake``, m/s^2 > 0): every step must also end in the stopping-safe set,
     the safety layer's ``"stopping"`` rule (:func:`transforms.safety_layer.safe_accel_upper`): if the head
@@ -92,7 +126,7 @@ def least_jerk(head_speed, *, v_start: float, gap_start: float, dt: float, warmu
     prog = _program(head_speed, v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min,
                     s_max=s_max, accel_bounds=accel_bounds, gap_floor=gap_floor, steady=steady, rmse=rmse,
                     norm=norm, stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=end_speed,
-                    band_weight=band_weight, track_weight=track_weight)
+                    band_weight=band_weight, track_weight=track_weight, own_cost=own_cost)
     x, status = _solve(prog, time_limit=time_limit, who="least_jerk",
                        infeasible="no command sequence keeps the bars on this episode")
     N = prog.n
@@ -118,7 +152,8 @@ class _Program:
 
 
 def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_bounds, gap_floor, steady, rmse,
-             norm, stop_gap, leader_brake, a_prev, end_speed, band_weight, track_weight) -> _Program:
+             norm, stop_gap, leader_brake, a_prev, end_speed, band_weight, track_weight,
+             own_cost: OwnCost | None = None) -> _Program:
     """:func:`least_jerk`'s program, its arguments validated (each error names the argument)."""
     from scipy import sparse as sp
 
@@ -145,6 +180,14 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
         _check("steady", mask.numel() == N, f"a mask of {N} values", mask.numel())
         st = np.flatnonzero(mask.numpy())
     S = len(st)
+    if own_cost is not None:
+        _check("own_cost.budget", own_cost.budget > 0, "> 0", own_cost.budget)
+        _check("own_cost.v_eq", torch.as_tensor(own_cost.v_eq).numel() == N, f"{N} values (one per step)",
+               torch.as_tensor(own_cost.v_eq).numel())
+        _check("own_cost weights", own_cost.weight_v >= 0 and own_cost.weight_s >= 0, ">= 0",
+               (own_cost.weight_v, own_cost.weight_s))
+        _check("own_cost points", len(own_cost.gap_points) > 0 and len(own_cost.speed_points) > 0,
+               "at least one tangent point each", (own_cost.gap_points, own_cost.speed_points))
     if stop_gap is not None:
         _check("stop_gap", stop_gap >= 0, ">= 0 (m)", stop_gap)
         _check("leader_brake", leader_brake is not None and leader_brake > 0, "> 0 (m/s^2) with stop_gap",
@@ -204,6 +247,18 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
     if track_weight is not None:  # e_t >= |v_t - v_head_t| on every step
         pick_v = sp.hstack([Z(N, N), eye, Z(N, n_base - 2 * N)]).tocsr()
         blocks.append((N, float(track_weight), [(pick_v, -eye, vh), (-pick_v, -eye, -vh)]))
+    if own_cost is not None:  # q_t >= w_s (g_t - s*)^2 and p_t >= w_v (v_t - v_eq_t)^2 by tangents; sum <= budget
+        v_eq = torch.as_tensor(own_cost.v_eq, dtype=torch.float64).flatten().numpy()
+        groups = []
+        for col, center, points, weight, at in ((2, np.full(N, own_cost.s_star), own_cost.gap_points,
+                                                 own_cost.weight_s, 0), (1, v_eq, own_cost.speed_points,
+                                                                         own_cost.weight_v, N)):
+            pick = sp.hstack([Z(N, col * N), eye, Z(N, n_base - (col + 1) * N)]).tocsr()
+            mine = sp.hstack([Z(N, at), eye, Z(N, N - at)]).tocsr()  # q (first N) or p (last N)
+            for d0 in points:  # w (x - c)^2 >= w (2 d0 (x - c) - d0^2): 2 w d0 x - y <= w (2 d0 c + d0^2)
+                groups.append((2 * weight * d0 * pick, -mine, weight * (2 * d0 * center + d0 ** 2)))
+        groups.append((Z(1, n_base), sp.csr_matrix(np.ones((1, 2 * N))), [float(own_cost.budget)]))
+        blocks.append((2 * N, 0.0, groups))
     width = sum(n for n, _, _ in blocks)
     if width:
         rows = [sp.hstack([r, Z(r.shape[0], width)]) for r in rows]
@@ -350,7 +405,7 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                       accel_bounds: tuple[float, float] = (-3.0, 3.0), gap_floor: float = 0.05,
                       stop_gap: float | None = None, leader_brake: float | None = None, a_prev: float | None = None,
                       end_speeds=None, steady=None, rmse: float | None = None, norm: str = "l1",
-                      time_limit: float = 600.0) -> CausalResult:
+                      own_costs=None, time_limit: float = 600.0) -> CausalResult:
     """The least jerk of any **causal** CAV over a set of head futures: a lower bound, where
     :func:`least_jerk` (which knows the head's future) is not one, of what a controller that only measures
     the head can reach.
@@ -371,7 +426,8 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     :func:`~mixed_traffic.evaluation.harness.steady_samples` of the head's accelerations) with
     ``rmse`` (m/s) adds :func:`least_jerk`'s speed bar on each head: the mean |v - v_head| over its steady samples
     at most ``rmse`` (``norm`` ``"l1"``, implied by an RMSE at most ``rmse``, so the bound stays a bound for the
-    RMSE bar), or every such sample within ``rmse`` (``"linf"``).
+    RMSE bar), or every such sample within ``rmse`` (``"linf"``). ``own_costs`` (``L`` :class:`OwnCost`, one per
+    head, or None): each head's own-cost cap (the return bar against a reference controller's own terms on it).
 
     Every causal controller that keeps these bars on all ``L`` heads has, averaged with ``weights`` over them,
     at least this mean |jerk| over the counted steps, whatever else it observes (the CAV's own state follows
@@ -412,6 +468,9 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     if len(ends) != L:
         raise ValueError(f"causal_least_jerk: end_speeds must be None or {L} values (m/s >= 0), got {len(ends)}")
     masks = [None] * L
+    caps = [None] * L if own_costs is None else list(own_costs)
+    if len(caps) != L:
+        raise ValueError(f"causal_least_jerk: own_costs must be None or {L} OwnCost (one per head), got {len(caps)}")
     if rmse is not None:
         _check("steady", steady is not None, "an [L, N] bool mask when rmse is given", steady)
         st = torch.as_tensor(steady)
@@ -424,15 +483,21 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
     n_counted = int(counted.sum()) + with_prev
     progs = [_program(vh[i], v_start=v_start, gap_start=gap_start, dt=dt, warmup=warmup, s_min=s_min, s_max=s_max,
                       accel_bounds=accel_bounds, gap_floor=gap_floor, steady=masks[i], rmse=rmse, norm=norm,
-                      stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i], band_weight=None,
-                      track_weight=None) for i in range(L)]
+                      stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i],
+                      band_weight=None, track_weight=None, own_cost=caps[i]) for i in range(L)]
     # each head's columns (_program's order): a, v, g, u (N - 1), e (one per steady sample), then a_prev's when given
     widths = [len(p.cost) for p in progs]
     offsets = np.r_[0, np.cumsum(widths)[:-1]]
     # the counted changes: u and, when the change from a_prev counts, a_prev's column, the last
-    cost = np.concatenate([
-        p.cost * np.r_[np.zeros(3 * N), counted, np.zeros(widths[i] - 4 * N + 1 - with_prev), [1.0] * with_prev]
-        * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
+    def counted_columns(i: int) -> np.ndarray:
+        """Head ``i``'s cost mask: ``u`` on the counted steps only, ``a_prev``'s column (the first priced block,
+        right after ``e``) only when its change counts; the own-cost block after it is free anyway."""
+        mask = np.ones(widths[i])
+        mask[3 * N:4 * N - 1] = counted
+        if a_prev is not None and not with_prev:
+            mask[4 * N - 1 + (0 if masks[i] is None else int(torch.as_tensor(masks[i]).sum()))] = 0.0
+        return mask
+    cost = np.concatenate([p.cost * counted_columns(i) * float(w[i]) / (n_counted * dt) for i, p in enumerate(progs)])
     # one controller: a_t of every head equals a_t of the first head with the same history
     ids = history_groups(vh).numpy()
     rows, cols, vals = [], [], []
@@ -528,4 +593,4 @@ def steady_mask(trace, *, dt: float, warmup: float, settle: float) -> torch.Tens
     return steady_samples(trace.head_accel, trace.valid & (trace.time >= warmup), int(round(settle / dt)))
 
 
-__all__ = ["causal_least_jerk", "history_groups", "least_jerk", "least_jerk_of_trace", "preview_least_jerk", "start_of_trace", "steady_mask", "CausalResult", "OracleResult"]
+__all__ = ["OwnCost", "causal_least_jerk", "history_groups", "least_jerk", "least_jerk_of_trace", "preview_least_jerk", "start_of_trace", "steady_mask", "CausalResult", "OracleResult"]
