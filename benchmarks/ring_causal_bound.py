@@ -37,7 +37,8 @@ row also gives its steady RMSE.
 ring's reward (:class:`~mixed_traffic.evaluation.oracle.OwnCost`), at most RATIO times IDM-as-CAV's on the
 same future, the CAV starting from IDM-as-CAV's settled gap (a relaxation by tangent lines, so still a bound).
 Every row gives its own cost against IDM-as-CAV's (the futures' mean of the ratios; below 1: the CAV's part
-of the return is higher).
+of the return is higher), and its whole return against IDM-as-CAV's: the ring's reward summed over the counted
+steps, with the two humans behind the CAV replayed by the env's car-following model behind its speeds.
 
 The tree is small (``options ** depth`` futures, the options being ``--speeds`` and a hold when ``--p-hold``
 > 0, of ``(depth + 1) epoch + tail`` seconds), so the bound is for this distribution and this horizon; a
@@ -57,6 +58,7 @@ with the tree (35,000 steps in all solve in about 90 s). Writes ``OUT/causal_bou
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import math
@@ -220,9 +222,11 @@ def main(argv=None) -> dict:
     from mixed_traffic import make_env
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.envs.traffic import stage_terms
     from mixed_traffic.evaluation.harness import Trace, eval_scenario, steady_samples
     from mixed_traffic.evaluation.oracle import OwnCost, causal_least_jerk, least_jerk
     from mixed_traffic.evaluation.replay import replay
+    from mixed_traffic.physics import car_following_accel
     from mixed_traffic.training.builders import residual_base
     from mixed_traffic.validation import validate_config
 
@@ -288,6 +292,41 @@ def main(argv=None) -> dict:
         """Per future: the CAV's own stage cost (speed and gap terms) over the counted steps."""
         return torch.stack([own_cap(i, 1.0).of(speed[i], gap[i]) for i in range(L)])
 
+    def full_return(speed: torch.Tensor, accel: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
+        """Per future: the return of the ring's reward over the counted steps (``NonNegativeReward`` over the env's
+        stage cost, :func:`~mixed_traffic.envs.traffic.stage_terms`), the humans behind the CAV replayed by the env's
+        car-following model behind its speeds, each starting steady at v0 at its model's equilibrium gap."""
+        n, cav = sc.n_vehicles, list(sc.cav_indices)
+        if cav != [1]:
+            raise SystemExit(f"the return with the humans needs one CAV right behind the head, got {cav}")
+        params = dataclasses.asdict(sc.hdv_defaults())
+        v0 = torch.tensor(float(a.v0), dtype=torch.float64)
+        lo_s, hi_s = torch.tensor(0.0, dtype=torch.float64), torch.tensor(500.0, dtype=torch.float64)
+        for _ in range(60):  # the humans' equilibrium gap at v0 (their model's acceleration 0 there), by bisection
+            mid = (lo_s + hi_s) / 2
+            accel_mid = car_following_accel(sc.hdv_model, mid, v0, v0, params)
+            lo_s, hi_s = (mid, hi_s) if float(accel_mid) < 0 else (lo_s, mid)
+        s_eq = float(hi_s)
+        speed, accel, gap = speed.double(), accel.double(), gap.double()
+        x_cav = torch.cumsum(speed * dt, 1)  # the CAV's position after each step (0 before the first)
+        x = torch.stack([-(k * (s_eq + sc.vehicle_length)) * torch.ones(L, dtype=torch.float64) for k in range(1, n - 1)], 1)
+        v = torch.full((L, n - 2), float(a.v0), dtype=torch.float64)
+        ret = torch.zeros(L, dtype=torch.float64)
+        lead_x, lead_v = torch.zeros(L, dtype=torch.float64), torch.full((L,), float(a.v0), dtype=torch.float64)
+        for t in range(N):
+            ahead_x = torch.cat([lead_x[:, None], x[:, :-1]], 1)
+            ahead_v = torch.cat([lead_v[:, None], v[:, :-1]], 1)
+            h_acc = car_following_accel(sc.hdv_model, ahead_x - x - sc.vehicle_length, v, ahead_v, params)
+            v = (v + h_acc * dt).clamp_min(0.0)
+            x = x + v * dt
+            lead_x, lead_v = x_cav[:, t], speed[:, t]
+            all_speed = torch.cat([heads[:, t, None], speed[:, t, None], v], 1)
+            all_gap = torch.cat([gap[:, t, None], gap[:, t, None], torch.cat([lead_x[:, None], x[:, :-1]], 1) - x
+                                 - sc.vehicle_length], 1)
+            j, _ = stage_terms(sc, all_speed, all_gap, accel[:, t, None], v_eq[:, t, None])
+            ret += ((sc.J_max - j[:, 0]).clamp_min(0.0) / sc.J_max)
+        return ret
+
     env = make_env("ring", batch_size=1, seed=0)
     laws = {name: make_classic_policy(model, env, **over).module.double() for name, (model, over) in CLASSICAL.items()}
     laws[f"{a.experiment}'s base{' (' + ' '.join(a.set) + ')' if a.set else ''}"] = \
@@ -301,7 +340,7 @@ def main(argv=None) -> dict:
         replayed[name] = {"jerk": float((per * w).sum()), "per_future": per,
                           "gaps": (float(gap.min()), float(gap.max())), "collisions": int((gap <= 0).any(1).sum()),
                           "rmse": weighted(per_rmse, w), "rmse_per_future": per_rmse,
-                          "own_cost_per_future": own(speed, gap)}
+                          "own_cost_per_future": own(speed, gap), "return_per_future": full_return(speed, accel, gap)}
     caps = None
     if a.own_cost is not None:  # the reference's own cost per future, and the bound from the reference's start
         ref_cost = replayed["IDM-as-CAV"]["own_cost_per_future"]
@@ -333,11 +372,15 @@ def main(argv=None) -> dict:
         rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
                                  "gaps": (float(bound.gap.min()), float(bound.gap.max())),
                                  "rmse": weighted(bound_rmse, w), "rmse_per_future": bound_rmse,
-                                 "own_cost_per_future": own(bound.speed, bound.gap)},
+                                 "own_cost_per_future": own(bound.speed, bound.gap),
+                                 "return_per_future": full_return(bound.speed, bound.accel, bound.gap)},
                 "clairvoyant": {"jerk": float((mean_jerk(torch.stack([c.accel for c in clair]), torch.zeros(L)) * w).sum()),
                                 "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w),
                                 "own_cost_per_future": own(torch.stack([c.speed for c in clair]),
-                                                           torch.stack([c.gap for c in clair]))}}
+                                                           torch.stack([c.gap for c in clair])),
+                                "return_per_future": full_return(torch.stack([c.speed for c in clair]),
+                                                                 torch.stack([c.accel for c in clair]),
+                                                                 torch.stack([c.gap for c in clair]))}}
     rows.update(replayed)
     own_note = ("" if a.own_cost is None else
                 f", own cost <= {a.own_cost:g} x IDM-as-CAV's (from its settled gap, {kw['gap_start']:.2f} m)")
@@ -345,6 +388,7 @@ def main(argv=None) -> dict:
     ref_own = rows["IDM-as-CAV"]["own_cost_per_future"]
     for r in rows.values():  # the own cost against IDM-as-CAV's, the futures' weighted mean of the ratios
         r["own_cost"] = float((r["own_cost_per_future"] / ref_own * w).sum())
+        r["return"] = float(((r["return_per_future"] - rows["IDM-as-CAV"]["return_per_future"]) * w).sum())
     checked = ("" if stop_excess is None else
                f" (the bound's largest command above the rule's own cap: {stop_excess:.1e} m/s^2)")
     if a.stops:
@@ -361,12 +405,12 @@ def main(argv=None) -> dict:
              f"{'' if a.rmse is None else f', speed error on steady samples ({a.rmse_norm}) <= {a.rmse:g} m/s'}"
              f"{own_note}; "
              + ("controllers replayed only" if a.replay_only else f"solved in {solve_s:.0f} s ({bound.status})"), "",
-             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) | steady RMSE (m/s) | own cost / IDM-as-CAV's |",
-             "|---|---|---|---|---|---|"]
+             "| controller | mean |jerk| (m/s^3) | − IDM-as-CAV's | gaps (m) | steady RMSE (m/s) | own cost / IDM-as-CAV's "
+             "| return − IDM-as-CAV's (humans replayed) |", "|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
         g = r.get("gaps")
         lines.append(f"| {name} | {r['jerk']:.4f} | {100 * (r['jerk'] / ref - 1):+.1f} % | "
-                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} | {r['rmse']:.3f} | {r['own_cost']:.3f} |")
+                     f"{'' if g is None else f'{g[0]:.2f}–{g[1]:.2f}'} | {r['rmse']:.3f} | {r['own_cost']:.3f} | {r['return']:+.2f} |")
     md = "\n".join(lines)
     print(md)
     out = Path(a.out)

@@ -485,6 +485,10 @@ def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path
     capped = mod.main(["--depth", "1", "--epoch", "5", "--tail", "10", "--speeds", "22", "26", "--own-cost", "0.9",
                        "--out", str(tmp_path)])["rows"]
     assert rows["IDM-as-CAV"]["own_cost"] == pytest.approx(1.0) == capped["IDM-as-CAV"]["own_cost"]
+    # the return with the humans replayed: a reward in [0, 1] a step over the 20 s, against IDM-as-CAV's
+    assert rows["IDM-as-CAV"]["return"] == 0.0
+    assert all(0 < x <= 200 for x in rows["IDM-as-CAV"]["return_per_future"])
+    assert all(abs(r["return"]) < 200 for r in rows.values())
     assert capped["causal bound"]["own_cost"] <= 0.9 + 0.05 and capped["causal bound"]["jerk"] > rows["causal bound"]["jerk"]
     assert "own cost <= 0.9 x IDM-as-CAV's" in (tmp_path / "causal_bound.md").read_text()
     with pytest.raises(SystemExit, match="--own-cost"):
