@@ -222,11 +222,9 @@ def main(argv=None) -> dict:
     from mixed_traffic import make_env
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
-    from mixed_traffic.envs.traffic import stage_terms
     from mixed_traffic.evaluation.harness import Trace, eval_scenario, steady_samples
     from mixed_traffic.evaluation.oracle import OwnCost, causal_least_jerk, least_jerk
     from mixed_traffic.evaluation.replay import replay
-    from mixed_traffic.physics import car_following_accel
     from mixed_traffic.training.builders import residual_base
     from mixed_traffic.validation import validate_config
 
@@ -293,39 +291,7 @@ def main(argv=None) -> dict:
         return torch.stack([own_cap(i, 1.0).of(speed[i], gap[i]) for i in range(L)])
 
     def full_return(speed: torch.Tensor, accel: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
-        """Per future: the return of the ring's reward over the counted steps (``NonNegativeReward`` over the env's
-        stage cost, :func:`~mixed_traffic.envs.traffic.stage_terms`), the humans behind the CAV replayed by the env's
-        car-following model behind its speeds, each starting steady at v0 at its model's equilibrium gap."""
-        n, cav = sc.n_vehicles, list(sc.cav_indices)
-        if cav != [1]:
-            raise SystemExit(f"the return with the humans needs one CAV right behind the head, got {cav}")
-        params = dataclasses.asdict(sc.hdv_defaults())
-        v0 = torch.tensor(float(a.v0), dtype=torch.float64)
-        lo_s, hi_s = torch.tensor(0.0, dtype=torch.float64), torch.tensor(500.0, dtype=torch.float64)
-        for _ in range(60):  # the humans' equilibrium gap at v0 (their model's acceleration 0 there), by bisection
-            mid = (lo_s + hi_s) / 2
-            accel_mid = car_following_accel(sc.hdv_model, mid, v0, v0, params)
-            lo_s, hi_s = (mid, hi_s) if float(accel_mid) < 0 else (lo_s, mid)
-        s_eq = float(hi_s)
-        speed, accel, gap = speed.double(), accel.double(), gap.double()
-        x_cav = torch.cumsum(speed * dt, 1)  # the CAV's position after each step (0 before the first)
-        x = torch.stack([-(k * (s_eq + sc.vehicle_length)) * torch.ones(L, dtype=torch.float64) for k in range(1, n - 1)], 1)
-        v = torch.full((L, n - 2), float(a.v0), dtype=torch.float64)
-        ret = torch.zeros(L, dtype=torch.float64)
-        lead_x, lead_v = torch.zeros(L, dtype=torch.float64), torch.full((L,), float(a.v0), dtype=torch.float64)
-        for t in range(N):
-            ahead_x = torch.cat([lead_x[:, None], x[:, :-1]], 1)
-            ahead_v = torch.cat([lead_v[:, None], v[:, :-1]], 1)
-            h_acc = car_following_accel(sc.hdv_model, ahead_x - x - sc.vehicle_length, v, ahead_v, params)
-            v = (v + h_acc * dt).clamp_min(0.0)
-            x = x + v * dt
-            lead_x, lead_v = x_cav[:, t], speed[:, t]
-            all_speed = torch.cat([heads[:, t, None], speed[:, t, None], v], 1)
-            all_gap = torch.cat([gap[:, t, None], gap[:, t, None], torch.cat([lead_x[:, None], x[:, :-1]], 1) - x
-                                 - sc.vehicle_length], 1)
-            j, _ = stage_terms(sc, all_speed, all_gap, accel[:, t, None], v_eq[:, t, None])
-            ret += ((sc.J_max - j[:, 0]).clamp_min(0.0) / sc.J_max)
-        return ret
+        return return_with_humans(sc, heads, v_eq, speed, accel, gap, v0=a.v0)
 
     env = make_env("ring", batch_size=1, seed=0)
     laws = {name: make_classic_policy(model, env, **over).module.double() for name, (model, over) in CLASSICAL.items()}
@@ -435,6 +401,50 @@ def main(argv=None) -> dict:
                          "the base": tuple(x[k] for x in driven[base_name])},
                         steady[k], f"future {k}: " + " → ".join(map(choice_label, choices[k])))
     return result
+
+
+def return_with_humans(sc, heads, v_eq, speed, accel, gap, *, v0: float):
+    """Per future (``[L]``): the return of the ring's reward over the steps of ``speed``, ``accel`` and ``gap``
+    (``[L, N]``: the CAV's speed and executed command after each step, its gap to the head), behind ``heads``
+    (``[L, N]``) with ``v_eq`` (``[L, N]``): ``NonNegativeReward`` over the env's stage cost
+    (:func:`~mixed_traffic.envs.traffic.stage_terms`). The humans behind the CAV are replayed by the env's
+    car-following model (``sc.hdv_model``, ``sc.hdv_defaults()``) behind the CAV's speeds, each starting steady
+    at ``v0`` at the model's equilibrium gap, under the env's ``"euler"`` update, as the env would drive them."""
+    import torch
+
+    from mixed_traffic.envs.traffic import stage_terms
+    from mixed_traffic.physics import car_following_accel
+
+    n, cav = sc.n_vehicles, list(sc.cav_indices)
+    if cav != [1]:
+        raise SystemExit(f"the return with the humans needs one CAV right behind the head, got {cav}")
+    params = dataclasses.asdict(sc.hdv_defaults())
+    L, N = speed.shape
+    dt, f64 = sc.dt, torch.float64
+    v0_t = torch.tensor(float(v0), dtype=f64)
+    lo_s, hi_s = torch.tensor(0.0, dtype=f64), torch.tensor(500.0, dtype=f64)
+    for _ in range(60):  # the humans' equilibrium gap at v0 (their model's acceleration 0 there), by bisection
+        mid = (lo_s + hi_s) / 2
+        lo_s, hi_s = (mid, hi_s) if float(car_following_accel(sc.hdv_model, mid, v0_t, v0_t, params)) < 0 else (lo_s, mid)
+    s_eq = float(hi_s)
+    speed, accel, gap, heads, v_eq = (t.to(f64) for t in (speed, accel, gap, heads, v_eq))
+    x_cav = torch.cumsum(speed * dt, 1)  # the CAV's position after each step (0 before the first)
+    x = torch.stack([torch.full((L,), -k * (s_eq + sc.vehicle_length), dtype=f64) for k in range(1, n - 1)], 1)
+    v = torch.full((L, n - 2), float(v0), dtype=f64)
+    ret = torch.zeros(L, dtype=f64)
+    lead_x, lead_v = torch.zeros(L, dtype=f64), torch.full((L,), float(v0), dtype=f64)
+    for t in range(N):
+        ahead_x = torch.cat([lead_x[:, None], x[:, :-1]], 1)
+        ahead_v = torch.cat([lead_v[:, None], v[:, :-1]], 1)
+        v = (v + car_following_accel(sc.hdv_model, ahead_x - x - sc.vehicle_length, v, ahead_v, params) * dt).clamp_min(0.0)
+        x = x + v * dt
+        lead_x, lead_v = x_cav[:, t], speed[:, t]
+        all_speed = torch.cat([heads[:, t, None], speed[:, t, None], v], 1)
+        all_gap = torch.cat([gap[:, t, None], gap[:, t, None],
+                             torch.cat([lead_x[:, None], x[:, :-1]], 1) - x - sc.vehicle_length], 1)
+        j, _ = stage_terms(sc, all_speed, all_gap, accel[:, t, None], v_eq[:, t, None])
+        ret += (sc.J_max - j[:, 0]).clamp_min(0.0) / sc.J_max
+    return ret
 
 
 def choice_label(choice) -> str:

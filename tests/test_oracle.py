@@ -503,6 +503,27 @@ def test_the_causal_bound_benchmark_as_a_user_runs_it(benchmark_script, tmp_path
         mod.main(["--stops", "--ramps", "--out", str(tmp_path)])
 
 
+def test_the_whole_return_with_the_humans_replayed_is_the_envs_own(benchmark_script):
+    # IDM-as-CAV in the ring env behind a head that steps down and back, every car starting steady at IDM's
+    # equilibrium gap: the benchmark's replay of the humans behind the CAV's recorded speeds gives the env's return
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    mod = benchmark_script("ring_causal_bound")
+    profile = {"times": (0.0, 25.0, 27.0, 45.0, 47.0), "speeds": (24.0, 24.0, 20.0, 20.0, 24.0)}
+    env = make_env("ring", batch_size=1, seed=0, profile="piecewise", profile_kwargs=profile, v_init=24.0,
+                   init_spacing_rows=(34.48,), episode_seconds=60.0, reset_accel="model")
+    nx = env.rollout(600, make_classic_policy("idm", env), break_when_any_done=False)["next"]
+    sc = env.scenario
+    j_env = nx["traffic", "J"][0, :, 0].double()
+    env_return = float(((sc.J_max - j_env).clamp_min(0.0) / sc.J_max).sum())
+    row = lambda key: nx[key][0, :, 0][None].double()  # noqa: E731
+    replayed = mod.return_with_humans(sc, row(("cav", "head_speed")), nx["traffic", "v_eq"][0, :, 0][None],
+                                      row(("cav", "speed")), row(("cav", "accel")), row(("cav", "gap")), v0=24.0)
+    assert float(j_env.max()) > 50.0  # the step moves every car: the humans' terms are in the return
+    assert float(replayed[0]) == pytest.approx(env_return, abs=0.01)
+
+
 def test_the_stop_and_go_bound_with_the_speed_bar_as_a_user_runs_it(benchmark_script, tmp_path):
     mod = benchmark_script("ring_causal_bound")
     args = ["--stops", "--speeds", "6", "10", "--depth", "1", "--tail", "5", "--gap", "8", "--out", str(tmp_path)]
