@@ -409,7 +409,8 @@ def return_with_humans(sc, heads, v_eq, speed, accel, gap, *, v0: float):
     (``[L, N]``) with ``v_eq`` (``[L, N]``): ``NonNegativeReward`` over the env's stage cost
     (:func:`~mixed_traffic.envs.traffic.stage_terms`). The humans behind the CAV are replayed by the env's
     car-following model (``sc.hdv_model``, ``sc.hdv_defaults()``) behind the CAV's speeds, each starting steady
-    at ``v0`` at the model's equilibrium gap, under the env's ``"euler"`` update, as the env would drive them."""
+    at ``v0`` at the model's equilibrium gap (``sc.equilibrium_gap``), under the env's ``"euler"`` update, as the
+    env would drive them."""
     import torch
 
     from mixed_traffic.envs.traffic import stage_terms
@@ -421,12 +422,7 @@ def return_with_humans(sc, heads, v_eq, speed, accel, gap, *, v0: float):
     params = dataclasses.asdict(sc.hdv_defaults())
     L, N = speed.shape
     dt, f64 = sc.dt, torch.float64
-    v0_t = torch.tensor(float(v0), dtype=f64)
-    lo_s, hi_s = torch.tensor(0.0, dtype=f64), torch.tensor(500.0, dtype=f64)
-    for _ in range(60):  # the humans' equilibrium gap at v0 (their model's acceleration 0 there), by bisection
-        mid = (lo_s + hi_s) / 2
-        lo_s, hi_s = (mid, hi_s) if float(car_following_accel(sc.hdv_model, mid, v0_t, v0_t, params)) < 0 else (lo_s, mid)
-    s_eq = float(hi_s)
+    s_eq = sc.equilibrium_gap(float(v0))
     speed, accel, gap, heads, v_eq = (t.to(f64) for t in (speed, accel, gap, heads, v_eq))
     x_cav = torch.cumsum(speed * dt, 1)  # the CAV's position after each step (0 before the first)
     x = torch.stack([torch.full((L,), -k * (s_eq + sc.vehicle_length), dtype=f64) for k in range(1, n - 1)], 1)

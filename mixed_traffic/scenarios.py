@@ -177,11 +177,15 @@ class TrafficScenario:
             return float(self.init_spacing)
         if self.is_ring:
             return self.ring_length / self.n_vehicles - self.vehicle_length
+        return self.equilibrium_gap(self.v_init)
+
+    def equilibrium_gap(self, v: float) -> float:
+        """The humans' steady bumper gap at speed ``v`` (m): where their car-following model's acceleration
+        behind a leader at the same speed is 0."""
         p = self.hdv_defaults()
         if self.hdv_model == "ovm":
-            return ovm_equilibrium_gap(self.v_init, p.v_max, p.s_st, p.s_go)
-        # IDM equilibrium gap at v_init
-        return (p.s0 + self.v_init * p.T) / math.sqrt(max(1e-6, 1.0 - (self.v_init / p.v0) ** p.delta))
+            return ovm_equilibrium_gap(v, p.v_max, p.s_st, p.s_go)
+        return (p.s0 + v * p.T) / math.sqrt(max(1e-6, 1.0 - (v / p.v0) ** p.delta))
 
     def make_profile(self):
         kwargs = dict(self.profile_kwargs)

@@ -182,8 +182,8 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
     S = len(st)
     if own_cost is not None:
         _check("own_cost.budget", own_cost.budget > 0, "> 0", own_cost.budget)
-        _check("own_cost.v_eq", torch.as_tensor(own_cost.v_eq).numel() == N, f"{N} values (one per step)",
-               torch.as_tensor(own_cost.v_eq).numel())
+        n_eq = torch.as_tensor(own_cost.v_eq).numel()
+        _check("own_cost.v_eq", n_eq == N, f"{N} values (one per step)", n_eq)
         _check("own_cost weights", own_cost.weight_v >= 0 and own_cost.weight_s >= 0, ">= 0",
                (own_cost.weight_v, own_cost.weight_s))
         _check("own_cost points", len(own_cost.gap_points) > 0 and len(own_cost.speed_points) > 0,
@@ -485,10 +485,11 @@ def causal_least_jerk(head_speeds, *, v_start: float, gap_start: float, dt: floa
                       accel_bounds=accel_bounds, gap_floor=gap_floor, steady=masks[i], rmse=rmse, norm=norm,
                       stop_gap=stop_gap, leader_brake=leader_brake, a_prev=a_prev, end_speed=ends[i],
                       band_weight=None, track_weight=None, own_cost=caps[i]) for i in range(L)]
-    # each head's columns (_program's order): a, v, g, u (N - 1), e (one per steady sample), then a_prev's when given
+    # each head's columns (_program's order): a, v, g, u (N - 1), e (one per steady sample), then a_prev's when
+    # given, then the own-cost block (q, p) when capped
     widths = [len(p.cost) for p in progs]
     offsets = np.r_[0, np.cumsum(widths)[:-1]]
-    # the counted changes: u and, when the change from a_prev counts, a_prev's column, the last
+
     def counted_columns(i: int) -> np.ndarray:
         """Head ``i``'s cost mask: ``u`` on the counted steps only, ``a_prev``'s column (the first priced block,
         right after ``e``) only when its change counts; the own-cost block after it is free anyway."""
