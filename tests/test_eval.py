@@ -268,6 +268,32 @@ def test_a_colliding_idm_is_not_the_reference_of_the_jerk_and_return_bars(tmp_pa
     assert m["return"] == pytest.approx([0.0, 0.0]) and m["classical"] == {}  # IDM collided: not drawn
 
 
+def test_the_bars_table_names_what_each_classical_controller_misses_beside_the_policys_misses(tmp_path):
+    """A reviewer holds a policy's miss against the classical controllers on the same episodes: where IDM-as-CAV
+    keeps the band and the RMSE bar it meets every bar (it is the jerk and return reference), so a policy with more
+    jerk has lost to it; where IDM-as-CAV leaves the band, the table says by how much, and that no classical
+    controller met every bar either. The scorecard's count reads the same judgement."""
+    from mixed_traffic.evaluation.results import generalization_table, scorecard_margins
+
+    a = _generalization_json(tmp_path / "s0", jerk=0.12, gap=7.5, layered=0.12)  # the policy: more jerk than IDM
+    b = _generalization_json(tmp_path / "s1", jerk=0.11, gap=7.5, layered=0.11, cacc=False)
+    rows = generalization_table([a, b], bars=True).splitlines()
+    assert rows[2].endswith("| bars missed (of 2 runs) | classical controllers: bars missed |")
+    assert rows[4].endswith("| jerk 2 of 2 | idm: –; cacc: jerk |"), rows[4]  # cacc 0.12 against IDM's 0.1
+    assert rows[-1] == ("Where the policy misses a bar (1 of the cases), a classical controller meets every bar on the "
+                        "same episodes on 1: sine_fast (idm) (the last column).")
+    assert scorecard_margins([a, b])[0]["classical_clean"] == ["idm"]
+    for d in (a, b):  # IDM-as-CAV drifts out of the band: it no longer meets every bar, and the cell says where
+        g = json.loads((d / "generalization.json").read_text())
+        g["results"]["sine_fast"]["idm"]["max_head_gap"] = 51.0
+        (d / "generalization.json").write_text(json.dumps(g))
+    rows = generalization_table([a, b], bars=True).splitlines()
+    assert rows[4].endswith("| jerk 2 of 2 | idm: gaps 7.5–51.0 m; cacc: jerk |"), rows[4]
+    assert rows[-1] == ("Where the policy misses a bar (1 of the cases), no classical controller meets every bar on "
+                        "the same episodes either (the last column).")
+    assert scorecard_margins([a, b])[0]["classical_clean"] == []
+
+
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):
     from mixed_traffic.evaluation.results import generalization_table, main
 
@@ -462,14 +488,15 @@ def test_generalization_bars_name_what_each_case_misses_and_on_how_many_runs(tmp
     x["policy"]["intervention_rate"] = 0.06
     assert case_bars(x)["layer's share"] is False
     out = main(["--generalization", str(a), str(b), "--bars"]).splitlines()
-    assert out[2].endswith("| bars missed (of 2 runs) |")
-    assert out[4].endswith("| gaps 1 of 2; jerk 1 of 2 |")
-    assert out[-2].startswith("0 of 1 cases meet every bar on every run")
+    assert out[2].endswith("| bars missed (of 2 runs) | classical controllers: bars missed |")
+    assert out[4].endswith("| gaps 1 of 2; jerk 1 of 2 | idm: –; cacc: jerk |")
+    assert out[-3].startswith("0 of 1 cases meet every bar on every run")
     # and what each controller meets from the standard start: the first run's policy, IDM-as-CAV (the reference of
     # the jerk and return bars), and cacc (evaluated in one run: the same on every run's episodes)
-    assert out[-1] == ("From the standard start, without a layer, on the same episodes, the controllers meet every bar "
+    assert out[-2] == ("From the standard start, without a layer, on the same episodes, the controllers meet every bar "
                        "on: the policy (the first run) 1, idm 1, cacc 0 of the 1 cases.")
-    assert main(["--generalization", str(a), "--bars"]).splitlines()[4].endswith("| – |")
+    assert out[-1].startswith("Where the policy misses a bar (1 of the cases), a classical controller meets every bar")
+    assert main(["--generalization", str(a), "--bars"]).splitlines()[4].endswith("| – | idm: –; cacc: jerk |")
     from mixed_traffic.evaluation.results import clean_cases
     assert clean_cases([a, b]) == (0, 1) and clean_cases([a]) == (1, 1)  # the count the table ends with
     assert "bars missed" not in main(["--generalization", str(a)])

@@ -894,6 +894,11 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert (out / "scorecard.png").stat().st_size > 10_000  # the figure: per case, jerk and return against the reference
     assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 20 s a case")
     assert "## fresh_3 (evaluation seed 8000)" in md and "| bars missed (of 2 runs) |" in md
+    import re
+    head = md.splitlines()[2]  # the count, and where the policy misses, whether a classical controller did better
+    clean, total = (int(x) for x in re.match(r"(\d+) of (\d+) cases meet every bar on every run\.", head).groups())
+    assert (clean < total) == (f"Where the policy misses a bar ({total - clean} of the cases)" in head), head
+    assert "| classical controllers: bars missed |" in md
     assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table
     from mixed_traffic.evaluation.results import REFERENCE_FALLBACK
     assert mod.CLASSICAL == REFERENCE_FALLBACK  # by default the scorecard runs the stand-ins for a colliding IDM

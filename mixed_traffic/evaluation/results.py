@@ -292,6 +292,46 @@ def _classical_pool(runs, case: str) -> dict:
     return pool
 
 
+def classical_rows(runs, case: str, names, *, rmse_bar: float = 0.2) -> dict[str, tuple[dict, dict]]:
+    """``{name: (row, bars)}`` of each controller of ``names`` (IDM-as-CAV ``idm`` and the other baselines) that
+    some run evaluated on ``case`` without a layer (a classical controller drives the same episodes in every run,
+    so the first run's row that has it stands for all), with :func:`row_bars` against the first run's bars'
+    reference (:func:`bar_reference`): the bars each classical controller misses, beside the policy's misses."""
+    pool = _classical_pool(runs, case)
+    _, ref = bar_reference(runs[0][1]["results"][case], pool)
+    out = {}
+    for o in names:
+        row = next((g["results"][case][o] for _, g in runs if o in g["results"][case]), None)
+        if row is not None:
+            out[o] = (row, row_bars(row, ref, rmse_bar=rmse_bar))
+    return out
+
+
+def _meets_every_bar(bars: dict) -> bool:
+    return not any(v is False for v in bars.values())
+
+
+def _classical_cell(rows: dict[str, tuple[dict, dict]]) -> str:
+    """``idm: gaps 25.5–51.0 m, steady RMSE; cacc: jerk``: the bars each classical controller misses (``–``: none),
+    the gaps with their span where they leave the band."""
+    def missed(r, bars):
+        return [f"gaps {r['min_gap_after']:.1f}–{r['max_head_gap']:.1f} m" if b == "gaps" else b
+                for b in BARS if bars.get(b) is False]
+    return "; ".join(f"{o}: {', '.join(missed(r, bars)) or '–'}" for o, (r, bars) in rows.items())
+
+
+def beaten_line(missed: int, beaten: list[str], where: str) -> str:
+    """The sentence on the policy's ``missed`` cases that a classical controller meets every bar of (``beaten``:
+    ``case (controllers)``)."""
+    if not beaten:
+        return (f"Where the policy misses a bar ({missed} of the cases), no classical controller meets every bar on "
+                f"the same episodes either ({where}).")
+    rest = missed - len(beaten)
+    return (f"Where the policy misses a bar ({missed} of the cases), a classical controller meets every bar on the "
+            f"same episodes on {len(beaten)}: {', '.join(beaten)}"
+            + (f"; on the other {rest}, none does ({where})." if rest else f" ({where})."))
+
+
 def _missed(per_run: list[dict]) -> str:
     """The bars some run misses, each with on how many runs (``jerk 3 of 5``); ``–`` where every run meets every
     bar it is judged on (a steady RMSE bar that does not apply is not a miss)."""
@@ -342,9 +382,11 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     drives the same episodes in every run, so one run that evaluated it on every case is enough, and its range is
     over the runs that did. Where IDM-as-CAV collides on a case (its figures then cover only the steps before its
     collision), that row's columns against IDM's are against :func:`bar_reference`'s stand-in instead, marked
-    with a note under the table. With ``bars``, a last column names the acceptance bars missed and on how many runs
-    (:func:`case_bars`, the steady RMSE at most ``rmse_bar``), and a line after the table counts the cases that
-    meet every bar on every run. Refuses runs whose cases were evaluated on other episodes, over another V2V
+    with a note under the table. With ``bars``, a column names the acceptance bars missed and on how many runs
+    (:func:`case_bars`, the steady RMSE at most ``rmse_bar``), a last one the bars each classical controller misses
+    on the same episodes (:func:`classical_rows`: IDM-as-CAV's own gaps, say, where it leaves the band), and lines
+    after the table count the cases that meet every bar on every run, and those of the policy's misses where a
+    classical controller meets every bar. Refuses runs whose cases were evaluated on other episodes, over another V2V
     link or with other measurement noise.
     """
     runs, cases = _load_runs(dirs)
@@ -356,7 +398,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     link, noise = ref["v2v"], ref["sensor_noise"]
     head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's",
             "with the layer: jerk − IDM's", "layer's share", *(f"{o}: jerk − IDM's" for o in others),
-            *([f"bars missed (of {len(runs)} runs)"] if bars else [])]
+            *([f"bars missed (of {len(runs)} runs)", "classical controllers: bars missed"] if bars else [])]
     lines = [f"{len(runs)} run(s); {ref['episodes']} episodes of {ref['seconds']:g} s a case, evaluation seed "
              f"{ref['seed']}" + (f"; V2V {link['delay']:g} s late, {100 * link['loss']:g} % lost"
                                  if link["delay"] or link["loss"] else "")
@@ -367,7 +409,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
                 if noise["gap"] or noise["speed"] else "")
              + (f"; deployed with {' '.join(ref['set'])}" if ref["set"] else "") + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    clean, notes = 0, []
+    clean, notes, beaten, missed_cases = 0, [], [], 0
     for c in cases:
         pool = _classical_pool(runs, c)
         coll, gmin, gmax, jerk, rmse, ret, layered, layer = 0, math.inf, -math.inf, [], [], [], [], []
@@ -413,6 +455,13 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
         if bars:
             cells.append(_missed(met))
             clean += cells[-1] == "–"
+            crows = classical_rows(runs, c, ["idm", *others], rmse_bar=rmse_bar)
+            cells.append(_classical_cell(crows))
+            if cells[-2] != "–":
+                missed_cases += 1
+                winners = [o for o, (_, b) in crows.items() if _meets_every_bar(b)]
+                if winners:
+                    beaten.append(f"{c} ({', '.join(winners)})")
         lines.append("| " + " | ".join(cells) + " |")
     lines += [""] + notes if notes else []
     if bars:
@@ -431,6 +480,8 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
                 counts.append(f"{o} {clean_on((g[c][o], refs[c]) for c in cases)}")
         lines.append(f"From the standard start, without a layer, on the same episodes, the controllers meet every bar "
                      f"on: {', '.join(counts)} of the {len(cases)} cases.")
+        if missed_cases:
+            lines.append(beaten_line(missed_cases, beaten, "the last column"))
     return "\n".join(lines)
 
 
@@ -439,8 +490,9 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
     jerk and return against the reference of the bars (:func:`bar_reference`) from the standard start without its
     layer, one value per run, and each classical controller's on the same episodes; what :func:`scorecard_plot`
     draws. Each entry: ``case``, ``reference`` (its name), ``clean`` (every bar met on every run, :func:`case_bars`),
-    ``jerk`` / ``return`` (the policy's, % of the reference's, per run) and ``classical`` (name -> ``(jerk %,
-    return %)``)."""
+    ``jerk`` / ``return`` (the policy's, % of the reference's, per run), ``classical`` (name -> ``(jerk %,
+    return %)``) and ``classical_clean`` (the classical controllers, IDM-as-CAV and :data:`REFERENCE_FALLBACK`'s,
+    that meet every bar on the case without a layer, :func:`row_bars`)."""
     runs, cases = _load_runs(dirs)
     out = []
     for c in cases:
@@ -459,8 +511,11 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
         rows = {"idm": first["idm"], **pool}
         classical = {k: (100.0 * (r["jerk"] / ref["jerk"] - 1.0), 100.0 * (r["return"] - ref["return"]) / abs(ref["return"]))
                      for k, r in rows.items() if r["collisions"] == 0 and r is not ref}
+        judge = bar_reference(first, pool)[1]  # None where no stand-in completes: jerk and return not judged
         out.append({"case": c, "reference": name, "clean": all(v is not False for m in met for v in m.values()),
-                    "jerk": jerk, "return": ret, "classical": classical})
+                    "jerk": jerk, "return": ret, "classical": classical,
+                    "classical_clean": [k for k, r in rows.items()
+                                        if _meets_every_bar(row_bars(r, judge, rmse_bar=rmse_bar))]})
     return out
 
 
