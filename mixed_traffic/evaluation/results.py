@@ -470,7 +470,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
         first = runs[0][1]["results"]
 
         def clean_on(rows) -> int:  # cases where a controller's rows meet every bar (rows: (row, reference's))
-            return sum(not any(v is False for v in row_bars(r, i, rmse_bar=rmse_bar).values()) for r, i in rows)
+            return sum(_meets_every_bar(row_bars(r, i, rmse_bar=rmse_bar)) for r, i in rows)
 
         refs = {c: bar_reference(first[c], _classical_pool(runs, c))[1] for c in cases}
         counts = [f"the policy (the first run) {clean_on((_standard(first[c]), refs[c]) for c in cases)}"]
