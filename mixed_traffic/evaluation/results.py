@@ -524,7 +524,8 @@ def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
     policy's jerk and return against the bars' reference (IDM-as-CAV, or its stand-in where it collides, marked †)
     as the span over the runs, green where the case meets every bar on every run, red where it does not, and each
     classical controller that completes every episode as a marker. A bar is met below 0 % (jerk) or above it
-    (return)."""
+    (return). A case the policy misses where a classical controller meets every bar (``classical_clean``) is marked
+    ‡ in bold."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -563,8 +564,15 @@ def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
     fig.legend(handles=handles, fontsize=8, loc="upper center", ncol=len(handles), bbox_to_anchor=(0.5, 0.955),
                frameon=False)
     axes[1].set_xticks(range(n))
-    axes[1].set_xticklabels([e["case"] + (" †" if e["reference"] != "idm" else "") for e in entries], rotation=70,
-                            ha="right", fontsize=8)
+    lost = [not e["clean"] and bool(e.get("classical_clean")) for e in entries]  # a classical controller met them all
+    axes[1].set_xticklabels([e["case"] + (" †" if e["reference"] != "idm" else "") + (" ‡" if x else "")
+                             for e, x in zip(entries, lost)], rotation=70, ha="right", fontsize=8)
+    for label, x in zip(axes[1].get_xticklabels(), lost):
+        if x:
+            label.set_fontweight("bold")
+    if any(lost):
+        fig.text(0.995, 0.005, "‡ the policy misses a bar where a classical controller meets every bar on the same "
+                 "episodes", ha="right", va="bottom", fontsize=8)
     fig.suptitle(title or "Scorecard: jerk and return against IDM-as-CAV († against its stand-in, where it collides)",
                  fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
