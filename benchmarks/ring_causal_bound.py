@@ -335,18 +335,16 @@ def main(argv=None) -> dict:
                                    brake=-float(sc.cav_accel_bounds[0]), leader_brake=kw["leader_brake"])
             stop_excess = float((bound.accel[:, 1:] - cap).max())
         bound_rmse = steady_rmse(bound.speed)
+        c_speed, c_accel, c_gap = (torch.stack([getattr(c, k) for c in clair]) for k in ("speed", "accel", "gap"))
         rows = {"causal bound": {"jerk": bound.jerk, "per_future": bound.per_head,
                                  "gaps": (float(bound.gap.min()), float(bound.gap.max())),
                                  "rmse": weighted(bound_rmse, w), "rmse_per_future": bound_rmse,
                                  "own_cost_per_future": own(bound.speed, bound.gap),
                                  "return_per_future": full_return(bound.speed, bound.accel, bound.gap)},
-                "clairvoyant": {"jerk": float((mean_jerk(torch.stack([c.accel for c in clair]), torch.zeros(L)) * w).sum()),
-                                "rmse": weighted(steady_rmse(torch.stack([c.speed for c in clair])), w),
-                                "own_cost_per_future": own(torch.stack([c.speed for c in clair]),
-                                                           torch.stack([c.gap for c in clair])),
-                                "return_per_future": full_return(torch.stack([c.speed for c in clair]),
-                                                                 torch.stack([c.accel for c in clair]),
-                                                                 torch.stack([c.gap for c in clair]))}}
+                "clairvoyant": {"jerk": float((mean_jerk(c_accel, torch.zeros(L)) * w).sum()),
+                                "rmse": weighted(steady_rmse(c_speed), w),
+                                "own_cost_per_future": own(c_speed, c_gap),
+                                "return_per_future": full_return(c_speed, c_accel, c_gap)}}
     rows.update(replayed)
     own_note = ("" if a.own_cost is None else
                 f", own cost <= {a.own_cost:g} x IDM-as-CAV's (from its settled gap, {kw['gap_start']:.2f} m)")

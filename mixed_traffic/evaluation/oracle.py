@@ -227,6 +227,9 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
     # priced variables after e, one block per option: (size, price, [(rows over the columns above, rows over
     # the block, rhs)]); the rows above are padded once, after every block is known
     n_base = 4 * N - 1 + S
+
+    def column(k: int):  # [N, n_base]: picks the k-th block of N columns (0: a, 1: v, 2: g)
+        return sp.hstack([Z(N, k * N), eye, Z(N, n_base - (k + 1) * N)]).tocsr()
     blocks = []
     if a_prev is not None:  # u_0 >= |a_0 - a_prev|
         first = sp.csr_matrix(([1.0], ([0], [0])), shape=(1, n_base))
@@ -236,7 +239,7 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
         lower = np.array([b[0] for b in bounds[2 * N:3 * N]])
         upper = np.array([np.inf if b[1] is None else b[1] for b in bounds[2 * N:3 * N]])
         bounds[2 * N:3 * N] = [(gap_floor, None)] * N  # only the floor stays hard; the band moves to rows with slack
-        pick_g = sp.hstack([Z(N, 2 * N), eye, Z(N, n_base - 3 * N)]).tocsr()
+        pick_g = column(2)
         groups = []
         for idx, sign, edge in ((np.flatnonzero(lower > gap_floor), -1.0, -lower),
                                 (np.flatnonzero(np.isfinite(upper)), 1.0, upper)):
@@ -245,7 +248,7 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
                 groups.append((sign * pick_g[idx], -sel, edge[idx]))
         blocks.append((N, float(band_weight), groups))
     if track_weight is not None:  # e_t >= |v_t - v_head_t| on every step
-        pick_v = sp.hstack([Z(N, N), eye, Z(N, n_base - 2 * N)]).tocsr()
+        pick_v = column(1)
         blocks.append((N, float(track_weight), [(pick_v, -eye, vh), (-pick_v, -eye, -vh)]))
     if own_cost is not None:  # q_t >= w_s (g_t - s*)^2 and p_t >= w_v (v_t - v_eq_t)^2 by tangents; sum <= budget
         v_eq = torch.as_tensor(own_cost.v_eq, dtype=torch.float64).flatten().numpy()
@@ -253,7 +256,7 @@ def _program(head_speed, *, v_start, gap_start, dt, warmup, s_min, s_max, accel_
         for col, center, points, weight, at in ((2, np.full(N, own_cost.s_star), own_cost.gap_points,
                                                  own_cost.weight_s, 0), (1, v_eq, own_cost.speed_points,
                                                                          own_cost.weight_v, N)):
-            pick = sp.hstack([Z(N, col * N), eye, Z(N, n_base - (col + 1) * N)]).tocsr()
+            pick = column(col)
             mine = sp.hstack([Z(N, at), eye, Z(N, N - at)]).tocsr()  # q (first N) or p (last N)
             for d0 in points:  # w (x - c)^2 >= w (2 d0 (x - c) - d0^2): 2 w d0 x - y <= w (2 d0 c + d0^2)
                 groups.append((2 * weight * d0 * pick, -mine, weight * (2 * d0 * center + d0 ** 2)))
