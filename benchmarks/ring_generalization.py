@@ -73,7 +73,8 @@ seed draws other stops:
 
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
-run's residual base with the learned residual at zero) runs
+run's residual base's laws alone; ``zero_residual``: the run's deployed chain, drive-off cap and join included, with
+the learned residual at zero) runs
 without a layer and, with ``--baselines-with-layer``, again behind the run's safety layer, all
 on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` and
 ``OUT/generalization.json`` and prints the table; ``--plot`` also draws episode 0 of each case
@@ -311,7 +312,8 @@ def main(argv=None) -> dict:
                    help=f"cases or groups of them ({', '.join(GROUPS)}; default held_out)")
     p.add_argument("--baselines", nargs="+", default=["idm"],
                    help="classical controllers run without a layer on the same episodes (e.g. idm 'idm:s0=6'; "
-                        "base: the run's residual base alone)")
+                        "base: the run's residual base's laws alone; zero_residual: the run's deployed chain with the "
+                        "learned residual at zero)")
     p.add_argument("--baselines-with-layer", action="store_true",
                    help="run every baseline again behind the run's safety layer (rows '<name> + layer')")
     p.add_argument("--v2v-delay", type=float, default=0.0, metavar="S",
@@ -364,7 +366,9 @@ def main(argv=None) -> dict:
         classic_factory,
         policy_factory_from_state,
         residual_base_factory,
+        zero_residual_factory,
     )
+    from mixed_traffic.evaluation.results import ZERO_RESIDUAL
     from mixed_traffic.validation import ConfigError, validate_config
 
     torch.set_num_threads(1)
@@ -381,6 +385,17 @@ def main(argv=None) -> dict:
                 "eval.sensor_filter_speed": "--sensor-filter-model SPEED",
                 "eval.sensor_filter_tau": "--sensor-filter-model TAU"}.get(e.field, e.field)
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
+    def baseline_factory(spec: str):
+        if spec == "base":
+            return residual_base_factory(run_cfg)
+        return zero_residual_factory(run_cfg) if spec == ZERO_RESIDUAL else classic_factory(spec)
+
+    for spec in a.baselines:  # a bad name, or a base the run lacks, fails before anything runs
+        try:
+            baseline_factory(spec)
+        except ValueError as e:
+            raise SystemExit(f"--baselines: {spec!r}: {e}; allowed: classical controllers (idm, 'idm:s0=6', cacc, ...), "
+                             f"and base or {ZERO_RESIDUAL} for a run with a learned residual") from None
     factory = policy_factory_from_state(run_cfg, state)
     results = {}
     for name in names:
@@ -395,15 +410,17 @@ def main(argv=None) -> dict:
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
             base_cfg = case_config(run_cfg, case, **settings)
+            deployed = list(run_cfg.transforms.chain) if spec == ZERO_RESIDUAL else ["non_negative_reward",
+                                                                                      "safety_layer"]
             with open_dict(base_cfg):
-                base_cfg.transforms.chain = ["non_negative_reward"]
-            fac = residual_base_factory(run_cfg) if spec == "base" else classic_factory(spec)
+                base_cfg.transforms.chain = [t for t in deployed if t != "safety_layer"]
+            fac = baseline_factory(spec)
             base_rep, base_tr = evaluate(base_cfg, policy_factory=fac)
             results[name][spec] = row(base_rep, prof)
             plotted[f"{spec}, no layer"] = base_tr[prof]
             if a.baselines_with_layer:
                 with open_dict(base_cfg):
-                    base_cfg.transforms.chain = ["non_negative_reward", "safety_layer"]
+                    base_cfg.transforms.chain = deployed
                 results[name][f"{spec} + layer"] = row(evaluate(base_cfg, policy_factory=fac)[0], prof)
         for key, cuts, by in (("jerk_by_speed", a.jerk_by_speed, "cav_speed"), ("jerk_by_time", a.jerk_by_time, "time")):
             if cuts is not None:

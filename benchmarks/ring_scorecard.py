@@ -3,12 +3,15 @@
 Runs ``ring_generalization.py`` for each run (one per seed) on each group of cases at the group's own
 evaluation seed (held_out 2000, fresh 5000, fresh_2 7000, fresh_3 8000, fresh_4 9000, random_stops 10000), IDM-as-CAV beside every run and
 the classical controllers of ``--classical`` beside the first run only (they do not depend on the policy:
-the same episodes in every run). Then prints and writes ``OUT/scorecard.md``: per group, the table of
+the same episodes in every run; ``zero_residual``, the first run's deployed controller with its learned residual at
+zero, stands for every run's when they share their config, as seeds of one experiment do). Then prints and writes
+``OUT/scorecard.md``: per group, the table of
 ``python -m mixed_traffic.evaluation.results --generalization ... --bars`` (which acceptance bars each case
-misses and on how many runs, and what each controller meets alone), and a line counting the clean cases over
-all groups, and draws ``OUT/scorecard.png`` (per case, the policy's jerk and return against the bars' reference over
+misses and on how many runs, and what each controller meets alone), a line counting the clean cases over
+all groups and one on what the learned residual adds (``results.residual_line``), and draws
+``OUT/scorecard.png`` (per case, the policy's jerk and return against the bars' reference over
 the runs, beside the classical controllers'). A group whose output is already there is not run again (``--rerun``
-to run it anyway)::
+to run it anyway) unless it lacks a classical controller now asked for::
 
     python benchmarks/ring_scorecard.py --runs outputs/results/ring_safety_net_seed{0,1,2,3,4} --jobs 2 \\
         --out outputs/results/scorecard
@@ -26,8 +29,9 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000, "fresh_4": 9000, "random_stops": 10000}
-CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")  # IDM_cav (b = 2), the best classical; CACC. They stand in for a
-# colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same two)
+CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc", "zero_residual")  # IDM_cav (b = 2), the best classical; CACC. They
+# stand in for a colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same
+# two). zero_residual: the run's deployed controller with its learned residual at zero (results.ZERO_RESIDUAL)
 
 
 def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical,
@@ -44,14 +48,33 @@ def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, second
     return todo
 
 
+def classical_for(run: str, asked: list[str] | None) -> list[str]:
+    """The classical controllers to run beside ``run``: ``asked``, or by default :data:`CLASSICAL` less
+    ``zero_residual`` where the run has no learned residual (a policy that drives alone); ``base`` or
+    ``zero_residual`` asked for such a run fails here."""
+    from mixed_traffic.evaluation.policies import checkpoint_config
+
+    has_residual = "residual_idm" in checkpoint_config(run)[0].transforms.chain
+    if asked is None:
+        return [c for c in CLASSICAL if c != "zero_residual" or has_residual]
+    wrong = [c for c in asked if c in ("base", "zero_residual")]
+    if wrong and not has_residual:
+        raise SystemExit(f"--classical: {wrong} drive the run's classical base without its learned residual, and {run} "
+                         "has none (its transforms.chain lacks residual_idm); allowed: classical controllers (e.g. "
+                         "idm, cacc, 'idm:s0=6')")
+    return list(asked)
+
+
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--runs", nargs="+", required=True, help="run directories (one per seed) or final.pt files")
     p.add_argument("--groups", nargs="+", default=list(SEEDS), help=f"groups of cases (default: all of {list(SEEDS)})")
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--seconds", type=float, default=200.0)
-    p.add_argument("--classical", nargs="*", default=list(CLASSICAL),
-                   help="classical controllers run beside the first run (default: IDM_cav (b = 2) and CACC)")
+    p.add_argument("--classical", nargs="*", default=None,
+                   help="classical controllers run beside the first run (default: IDM_cav (b = 2), CACC and "
+                        "zero_residual, the run's deployed controller with its learned residual at zero, where the run "
+                        "has one)")
     p.add_argument("--jobs", type=int, default=1, help="groups evaluated at once (processes)")
     p.add_argument("--rerun", action="store_true", help="run every group again, even where its output is there")
     p.add_argument("--rmse-bar", type=float, default=0.2)
@@ -68,7 +91,14 @@ def main(argv=None) -> str:
         raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
     if a.jobs < 1:
         raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
-    from mixed_traffic.evaluation.results import beaten_line, generalization_table, scorecard_margins, scorecard_plot
+    a.classical = classical_for(a.runs[0], a.classical)
+    from mixed_traffic.evaluation.results import (
+        beaten_line,
+        generalization_table,
+        residual_line,
+        scorecard_margins,
+        scorecard_plot,
+    )
 
     out = Path(a.out)
     todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical, settings=a.set)
@@ -83,10 +113,21 @@ def main(argv=None) -> str:
                 raise SystemExit(f"--set: {d} was evaluated with --set {done}, not {list(a.set)}; allowed: a new --out "
                                  "for another variant, or --rerun")
 
+    def lacking(d: Path, args: list[str]) -> list[str]:
+        """The baselines of ``args`` that the group's output in ``d`` lacks (evaluated before they were asked for)."""
+        import json
+
+        results = json.loads((d / "generalization.json").read_text())["results"]
+        wanted = args[args.index("--baselines") + 1:args.index("--out")]
+        return [b for b in wanted if any(b not in r for r in results.values())]
+
     def run(job):
         d, args = job
         if (d / "generalization.json").is_file() and not a.rerun:
-            return d, 0
+            missing = lacking(d, args)
+            if not missing:
+                return d, 0
+            sys.stdout.write(f"{d}: evaluated without {missing}; running it again\n")  # one write: jobs run at once
         d.mkdir(parents=True, exist_ok=True)
         with open(d / "log.txt", "w") as log:
             rc = subprocess.run([sys.executable, script, *args], stdout=log, stderr=subprocess.STDOUT).returncode
@@ -105,10 +146,11 @@ def main(argv=None) -> str:
     total = sum(len(m) for m in margins.values())
     beaten = [f"{e['case']} ({', '.join(e['classical_clean'])})" for m in margins.values() for e in m
               if not e["clean"] and e["classical_clean"]]
+    residual = residual_line([e for m in margins.values() for e in m])
     head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
             f"{clean} of {total} cases meet every bar on every run."
             + (" " + beaten_line(total - clean, beaten, "each table's last column: the bars each classical "
-                                  "controller misses") if clean < total else ""), ""]
+                                  "controller misses") if clean < total else ""), "", *([residual, ""] if residual else [])]
     md = "\n".join(head + parts)
     (out / "scorecard.md").write_text(md)
     scorecard_plot(margins, out / "scorecard.png", title=f"Scorecard: {len(a.runs)} run(s), {clean} of {total} cases "

@@ -294,6 +294,39 @@ def test_the_bars_table_names_what_each_classical_controller_misses_beside_the_p
     assert scorecard_margins([a, b])[0]["classical_clean"] == []
 
 
+def test_the_scorecard_says_what_the_learned_residual_adds(tmp_path):
+    """The policy beside its deployed controller with the learned residual at zero (the ``zero_residual`` baseline)
+    on the same episodes: where that controller keeps every bar and the policy does not, the learned part cost a
+    bar; the sentence names such cases, counts the reverse, and says where the policy's jerk is below the residual-free
+    jerk on every run. Without that row there is nothing to say."""
+    from mixed_traffic.evaluation.results import ZERO_RESIDUAL, residual_line, scorecard_margins
+
+    a = _generalization_json(tmp_path / "s0", jerk=0.09, gap=7.5, layered=0.09, cacc=False)
+    b = _generalization_json(tmp_path / "s1", jerk=0.095, gap=7.5, layered=0.095, cacc=False)
+    assert residual_line(scorecard_margins([a, b])) == ""  # not evaluated
+    g = json.loads((a / "generalization.json").read_text())
+    case = g["results"]["sine_fast"]
+    case[ZERO_RESIDUAL] = dict(case["idm"], jerk=0.105)  # without the residual: more jerk than IDM-as-CAV, a miss
+    (a / "generalization.json").write_text(json.dumps(g))
+    m = scorecard_margins([a, b])
+    assert m[0]["baselines"] == ["idm", ZERO_RESIDUAL] and m[0]["classical_clean"] == ["idm"]
+    assert m[0]["classical"][ZERO_RESIDUAL][0] == pytest.approx(5.0)
+    head = ("Beside its learned residual at zero (zero_residual: the deployed laws, envelope, drive-off cap and join "
+            "alone, on the same episodes, no layer), the policy meets every bar on every run on ")
+    assert residual_line(m) == head + (
+        "1 cases where that controller misses one, and that controller on 0 where the policy misses one; both meet "
+        "every bar on 0. The policy's jerk is below its residual-free jerk on every run on 1 of 1 cases.")
+    # the other way round: without the residual every bar is met, with it (more jerk than IDM on a run) one is not
+    synthetic = [{"case": "x", "clean": False, "jerk": [-1.0, 2.0], "classical": {ZERO_RESIDUAL: (-2.0, 0.0)},
+                  "classical_clean": [ZERO_RESIDUAL], "baselines": ["idm", ZERO_RESIDUAL]},
+                 {"case": "y", "clean": True, "jerk": [-3.0, -4.0], "classical": {ZERO_RESIDUAL: (-5.0, 0.0)},
+                  "classical_clean": ["idm", ZERO_RESIDUAL], "baselines": ["idm", ZERO_RESIDUAL]}]
+    assert residual_line(synthetic) == head + (
+        "0 cases where that controller misses one, and that controller on 1 where the policy misses one (x); both "
+        "meet every bar on 1. The policy's jerk is below its residual-free jerk on every run on 0 of 2 cases, above "
+        "it on every run on 2 (x, y).")
+
+
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):
     from mixed_traffic.evaluation.results import generalization_table, main
 

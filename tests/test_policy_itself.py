@@ -512,6 +512,35 @@ def test_residual_base_factory_drives_the_runs_base_alone_and_refuses_a_run_with
         residual_base_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))
 
 
+def test_zero_residual_drives_the_deployed_chain_with_the_learned_part_at_zero():
+    """``--baselines zero_residual`` (the scorecard's yardstick of what the learned residual adds): the run's own
+    deployed chain with a residual of zero, so the drive-off cap and the join act on it as on the policy. With the
+    cap and the join off it is the base's laws alone (``base``) to the float; with them on it differs from the base
+    just where they act, behind a head that brakes to a standstill and drives off, from the long start. A run
+    without a residual fails naming the missing transform."""
+    from mixed_traffic.evaluation.policies import residual_base_factory, zero_residual_factory
+
+    over = ["experiment=ring_lagrangian_ppo_follow", "trainer.progress=false", "eval.episodes=2",
+            "eval.episode_seconds=60.0", "eval.warmup_seconds=5.0", "eval.settle_seconds=3.0",
+            "eval.profiles=[emergency_brake]", "eval.profile_kwargs.emergency_brake.start=25.0",
+            "eval.profile_kwargs.emergency_brake.v_cruise=18.0", "eval.profile_kwargs.emergency_brake.v_low=0.0"]
+
+    def jerks(extra):
+        cfg = compose([*over, *extra])
+        zero = compose([*over, *extra, "transforms.chain=[onboard_accel,non_negative_reward,residual_idm]"])
+        base = compose([*over, *extra, "transforms.chain=[non_negative_reward]"])
+        z, _ = evaluate(zero, policy_factory=zero_residual_factory(cfg))
+        b, _ = evaluate(base, policy_factory=residual_base_factory(cfg))
+        return [r["profiles"]["emergency_brake"]["per_episode"]["mean_abs_jerk"] for r in (z, b)]
+
+    z, b = jerks(["transforms.residual.join.base=null", "transforms.residual.drive_off.gain=null"])
+    assert z == pytest.approx(b, rel=1e-3)  # float32 through the chain: 6e-5 apart
+    z, b = jerks([])
+    assert all(abs(x / y - 1) > 0.02 for x, y in zip(z, b)), (z, b)  # the join closes the long start, the cap drives off
+    with pytest.raises(ValueError, match="lacks residual_idm"):
+        zero_residual_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))
+
+
 def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
     """``mt-eval experiment=ring_lagrangian_ppo_band controller=base``: the experiment's scheduled base drives
     the CAV alone, on the episodes a checkpoint of the experiment is evaluated on, with and without the
@@ -900,13 +929,28 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert (clean < total) == (f"Where the policy misses a bar ({total - clean} of the cases)" in head), head
     assert "| classical controllers: bars missed |" in md
     assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table
-    from mixed_traffic.evaluation.results import REFERENCE_FALLBACK
-    assert mod.CLASSICAL == REFERENCE_FALLBACK  # by default the scorecard runs the stand-ins for a colliding IDM
+    from mixed_traffic.evaluation.results import REFERENCE_FALLBACK, ZERO_RESIDUAL
+    # by default the scorecard runs the stand-ins for a colliding IDM, and the policy with its learned residual at zero
+    assert mod.CLASSICAL == (*REFERENCE_FALLBACK, ZERO_RESIDUAL)
     import json
     assert "cacc" in json.loads((out / "run0" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
     assert "cacc" not in json.loads((out / "run1" / "fresh_3" / "generalization.json").read_text())["results"]["brake_from_20"]
     stamp = (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns
-    mod.main(args)  # already there: not run again
+    md = mod.main(args)  # already there: not run again
+    assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
+    assert "Beside its learned residual at zero" not in md  # not asked for
+    stamp1 = (out / "run1" / "fresh_3" / "generalization.json").stat().st_mtime_ns
+    md = mod.main([*args[:-4], "--classical", "cacc", "idm:s0=6", "--out", str(out)])  # a controller asked for later:
+    # the first run's group is evaluated again with it, the second run's is not
+    assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns != stamp
+    assert (out / "run1" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp1
+    assert "idm:s0=6: jerk − IDM's" in md
+    stamp = (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns
+    # this run drives alone (no learned residual): zero_residual is left out by default, and asked for it fails
+    # before anything runs
+    assert mod.classical_for(str(run), None) == list(REFERENCE_FALLBACK)
+    with pytest.raises(SystemExit, match=r"--classical: \['zero_residual'\] drive the run's classical base without"):
+        mod.main([*args[:-4], "--classical", "cacc", "zero_residual", "--out", str(out)])
     assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match=r"--set: .* was evaluated with --set \[\], not"):  # another variant: a new --out
         mod.main([*args, "--set", "transforms.safety_layer.deployed_s_max=false"])

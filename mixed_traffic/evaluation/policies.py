@@ -6,6 +6,8 @@ import sys
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
 
 from mixed_traffic.training.checkpoint import load_checkpoint
 
@@ -88,6 +90,39 @@ def residual_base_factory(cfg):
                          "residual_idm")
     rcfg = cfg.transforms.residual
     return lambda env: residual_base(rcfg, env)
+
+
+class ZeroAction(TensorDictModuleBase):
+    """Writes an all-zero action of ``action_spec`` on every step.
+
+    Through a chain with a learned residual (``residual_idm``) the CAV then drives by the deployed classical part
+    alone: the base's laws, stopping envelope and catch-up, and the drive-off cap and join, which act on the base
+    plus the residual. TorchRL has no constant-action policy (``RandomPolicy`` samples its spec), hence this one.
+
+    >>> from mixed_traffic import make_env
+    >>> env = make_env("ring", batch_size=2, seed=0)
+    >>> ZeroAction(env.action_spec)(env.reset())["action"].abs().sum().item()
+    0.0
+    """
+
+    def __init__(self, action_spec, action_key: NestedKey = "action"):
+        super().__init__()
+        self.action_spec = action_spec
+        self.in_keys, self.out_keys = [], [action_key]
+
+    def forward(self, tensordict):
+        return tensordict.set(self.out_keys[0], self.action_spec.zero())
+
+
+def zero_residual_factory(cfg):
+    """``factory(env)`` for :class:`ZeroAction` behind ``cfg``'s chain, which must carry the learned residual
+    (``residual_idm``): what the policy adds to its deployed classical part is measured against it on the same
+    episodes, with the drive-off cap and the join acting on both (:func:`residual_base_factory` drives the base's
+    laws alone, without them)."""
+    if "residual_idm" not in cfg.transforms.chain:
+        raise ValueError(f"the run has no learned residual: transforms.chain {list(cfg.transforms.chain)} lacks "
+                         "residual_idm")
+    return lambda env: ZeroAction(env.action_spec)
 
 
 def classic_factory(name: str):

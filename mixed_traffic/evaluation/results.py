@@ -224,6 +224,12 @@ def _standard(x: dict) -> dict:
     return free[next(k for k in free if k.startswith("standard"))]
 
 
+ZERO_RESIDUAL = "zero_residual"
+"""The baseline name of a run's deployed controller with its learned residual at zero
+(``benchmarks/ring_generalization.py --baselines zero_residual``): the base's laws, envelope and catch-up, and the
+drive-off cap and join, all as deployed. Beside the policy on the same episodes it shows what the learned part adds
+(:func:`residual_line`)."""
+
 REFERENCE_FALLBACK = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc")
 """The classical controllers that take IDM-as-CAV's place as the reference of the jerk and return bars, in this
 order, on a case where IDM-as-CAV collides: IDM_cav (b = 2) and CACC (``benchmarks/ring_scorecard.py`` evaluates
@@ -305,6 +311,14 @@ def classical_rows(runs, case: str, names, *, rmse_bar: float = 0.2) -> dict[str
         if row is not None:
             out[o] = (row, row_bars(row, ref, rmse_bar=rmse_bar))
     return out
+
+
+def _baselines(runs, cases) -> list[str]:
+    """The baselines other than IDM-as-CAV that some run evaluated on every case, in the order first met (a
+    classical controller drives the same episodes in every run)."""
+    skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed", "jerk_by_time")
+    return list(dict.fromkeys(k for _, g in runs for k in g["results"][cases[0]] if k not in skip
+                              and all(k in g["results"][c] for c in cases)))
 
 
 def _meets_every_bar(bars: dict) -> bool:
@@ -391,10 +405,7 @@ def generalization_table(dirs, *, bars: bool = False, rmse_bar: float = 0.2) -> 
     """
     runs, cases = _load_runs(dirs)
     ref = runs[0][1]
-    skip = ("seconds", "policy", "policy_without_layer", "idm", "jerk_by_speed", "jerk_by_time")
-    # the other baselines some run evaluated on every case (the same controller on the same episodes in every run)
-    others = list(dict.fromkeys(k for _, g in runs for k in g["results"][cases[0]] if k not in skip
-                                and all(k in g["results"][c] for c in cases)))
+    others = _baselines(runs, cases)
     link, noise = ref["v2v"], ref["sensor_noise"]
     head = ["case", "collisions", "gaps (m)", "jerk − IDM's", "steady RMSE", "return − IDM's",
             "with the layer: jerk − IDM's", "layer's share", *(f"{o}: jerk − IDM's" for o in others),
@@ -491,9 +502,12 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
     layer, one value per run, and each classical controller's on the same episodes; what :func:`scorecard_plot`
     draws. Each entry: ``case``, ``reference`` (its name), ``clean`` (every bar met on every run, :func:`case_bars`),
     ``jerk`` / ``return`` (the policy's, % of the reference's, per run), ``classical`` (name -> ``(jerk %,
-    return %)``) and ``classical_clean`` (the classical controllers, IDM-as-CAV and :data:`REFERENCE_FALLBACK`'s,
-    that meet every bar on the case without a layer, :func:`row_bars`)."""
+    return %)``, each that completes every episode), ``baselines`` (every classical controller evaluated on the case)
+    and ``classical_clean`` (the classical controllers that meet
+    every bar on the case without a layer, :func:`row_bars`): IDM-as-CAV, :data:`REFERENCE_FALLBACK`'s and every
+    other baseline the runs evaluated, such as :data:`ZERO_RESIDUAL`."""
     runs, cases = _load_runs(dirs)
+    others = _baselines(runs, cases)
     out = []
     for c in cases:
         pool = _classical_pool(runs, c)
@@ -508,15 +522,40 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
             met.append(case_bars(x, rmse_bar=rmse_bar, others=pool))
         first = runs[0][1]["results"][c]
         _, ref = _shown_reference(first, pool)
-        rows = {"idm": first["idm"], **pool}
+        rows = {"idm": first["idm"], **pool, **{o: next(g["results"][c][o] for _, g in runs if o in g["results"][c])
+                                                for o in others if o not in pool}}
         classical = {k: (100.0 * (r["jerk"] / ref["jerk"] - 1.0), 100.0 * (r["return"] - ref["return"]) / abs(ref["return"]))
                      for k, r in rows.items() if r["collisions"] == 0 and r is not ref}
         judge = bar_reference(first, pool)[1]  # None where no stand-in completes: jerk and return not judged
         out.append({"case": c, "reference": name, "clean": all(v is not False for m in met for v in m.values()),
-                    "jerk": jerk, "return": ret, "classical": classical,
+                    "jerk": jerk, "return": ret, "classical": classical, "baselines": list(rows),
                     "classical_clean": [k for k, r in rows.items()
                                         if _meets_every_bar(row_bars(r, judge, rmse_bar=rmse_bar))]})
     return out
+
+
+def residual_line(margins: list[dict]) -> str:
+    """The sentence on what the learned residual adds (``margins``: :func:`scorecard_margins`'s entries, of every
+    group): beside the deployed controller with the residual at zero (:data:`ZERO_RESIDUAL`, on the same episodes
+    without a layer), the cases where the policy meets every bar on every run and that controller misses one, the
+    reverse, and on how many the policy's jerk is below its jerk on every run; ``""`` where it was not evaluated."""
+    with_zero = [e for e in margins if ZERO_RESIDUAL in e.get("baselines", ())]
+    if not with_zero:
+        return ""
+    zero_clean = [e["case"] for e in with_zero if ZERO_RESIDUAL in e["classical_clean"]]
+    only_policy = [e["case"] for e in with_zero if e["clean"] and e["case"] not in zero_clean]
+    only_zero = [e["case"] for e in with_zero if not e["clean"] and e["case"] in zero_clean]
+    jerks = [(e["case"], e["jerk"], e["classical"][ZERO_RESIDUAL][0]) for e in with_zero
+             if ZERO_RESIDUAL in e["classical"]]
+    lower = sum(max(j) < z for _, j, z in jerks)
+    higher = [c for c, j, z in jerks if min(j) > z]
+    return (f"Beside its learned residual at zero ({ZERO_RESIDUAL}: the deployed laws, envelope, drive-off cap and join "
+            f"alone, on the same episodes, no layer), the policy meets every bar on every run on {len(only_policy)} "
+            f"cases where that controller misses one, and that controller on {len(only_zero)} where the policy misses "
+            "one" + (f" ({', '.join(only_zero)})" if only_zero else "")
+            + f"; both meet every bar on {len(zero_clean) - len(only_zero)}. The policy's jerk is below its residual-free "
+            f"jerk on every run on {lower} of {len(jerks)} cases"
+            + (f", above it on every run on {len(higher)} ({', '.join(higher)})" if higher else "") + ".")
 
 
 def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
@@ -539,7 +578,7 @@ def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
     n = len(entries)
     fig, axes = plt.subplots(2, 1, figsize=(max(10.0, 0.42 * n + 2.0), 8.0), sharex=True)
     markers = {"idm": ("x", "black", "IDM-as-CAV"), "idm:s0=7.0;v0=40.0;b=2.0": ("^", "tab:blue", "IDM_cav (b = 2)"),
-               "cacc": ("s", "tab:purple", "CACC")}
+               "cacc": ("s", "tab:purple", "CACC"), ZERO_RESIDUAL: ("D", "tab:orange", "the learned residual at zero")}
     for ax, key, label in ((axes[0], "jerk", "jerk − reference's (%)"), (axes[1], "return", "return − reference's (%)")):
         for i, e in enumerate(entries):
             lo, hi = min(e[key]), max(e[key])
