@@ -850,8 +850,9 @@ class Config:
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads per run (the joblib launcher runs jobs side by side)
     checkpoint: str | None = None  # mt-eval: a checkpoint (.pt) or a run directory to evaluate
-    # mt-eval: a classical controller instead ("idm", "ovm", "soft", "cacc"; "base": the experiment's residual base alone;
-    # wave rings: a damper or "all")
+    # mt-eval: a classical controller instead ("idm", "ovm", "soft", "cacc"; "base": the experiment's residual base's laws
+    # alone; "zero_residual": the experiment's deployed chain with its learned residual at zero; wave rings: a damper
+    # or "all")
     controller: str | None = None
     resume: str | None = None  # path to a checkpoint (.pt) or a run directory
     resume_override: bool = False  # resume even though budgets/hyper-parameters differ from the checkpoint's

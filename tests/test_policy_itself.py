@@ -541,6 +541,27 @@ def test_zero_residual_drives_the_deployed_chain_with_the_learned_part_at_zero()
         zero_residual_factory(compose(["experiment=ring_lagrangian_ppo_scratch"]))
 
 
+def test_mt_eval_controller_zero_residual_evaluates_the_experiments_deployed_classical_part(tmp_path):
+    """``mt-eval experiment=ring_lagrangian_ppo_follow controller=zero_residual``: the experiment's own chain (the
+    layer, the cap, the join) with the learned residual at zero, on the episodes a checkpoint of the experiment is
+    evaluated on, with and without the layer; no checkpoint is needed, the residual being zero. An experiment
+    without a residual fails naming ``controller`` before any rollout."""
+    from mixed_traffic.evaluation import evaluate_and_report
+    from mixed_traffic.evaluation.policies import zero_residual_factory
+    from mixed_traffic.validation import ConfigError
+
+    over = ["experiment=ring_lagrangian_ppo_follow", "trainer.progress=false", *SHORT]
+    rep = evaluate_and_report(compose([*over, "controller=zero_residual"]), tmp_path / "zero")
+    assert rep["policy"] == "zero_residual" and "residual_idm" in rep["transforms"] and "without_layer" in rep
+    ref, _ = evaluate(compose(over), policy_factory=zero_residual_factory(compose(over)))
+    for prof in ("random_steps", "emergency_brake"):
+        assert rep["profiles"][prof]["per_episode"]["mean_abs_jerk"] == ref["profiles"][prof]["per_episode"]["mean_abs_jerk"]
+    with pytest.raises(ConfigError, match=r"controller.*lacks residual_idm"):
+        evaluate_and_report(compose(["experiment=ring_lagrangian_ppo_scratch", "controller=zero_residual", *SHORT]),
+                            tmp_path / "none")
+    assert not (tmp_path / "none").exists()
+
+
 def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
     """``mt-eval experiment=ring_lagrangian_ppo_band controller=base``: the experiment's scheduled base drives
     the CAV alone, on the episodes a checkpoint of the experiment is evaluated on, with and without the

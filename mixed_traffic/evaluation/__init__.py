@@ -18,8 +18,10 @@ from mixed_traffic.evaluation.policies import (
     classic_factory,
     policy_factory_from_state,
     residual_base_factory,
+    zero_residual_factory,
 )
 from mixed_traffic.evaluation.report import plot_training_curves, read_scalars, write_report
+from mixed_traffic.evaluation.results import ZERO_RESIDUAL
 from mixed_traffic.validation import ConfigError
 
 
@@ -39,7 +41,7 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         problem = ("neither checkpoint nor controller is set" if checkpoint is None
                    else f"both are set ({checkpoint!r} and controller={controller!r})")
         raise ConfigError("checkpoint", f"{problem}: give exactly one of the two",
-                          "checkpoint=PATH (a run directory or a .pt), or controller=idm|ovm|soft|base "
+                          "checkpoint=PATH (a run directory or a .pt), or controller=idm|ovm|soft|base|zero_residual "
                           "(NAME:key=number;... for parameters)")
     if deploy_overrides and checkpoint is None:
         raise ConfigError("transforms", "deploy-time overrides apply to a checkpoint", "checkpoint=PATH with "
@@ -75,7 +77,15 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         run_dir = p if p.is_dir() else (p.parent.parent if p.parent.name == "checkpoints" else p.parent)
         eval_cfg = run_cfg
     else:
-        if controller == "base":  # the experiment's residual base driving alone: what the learned residual adds to
+        if controller == ZERO_RESIDUAL:  # the experiment's deployed chain, cap and join included, its residual at 0
+            try:
+                factory = zero_residual_factory(cfg)  # refuses a chain without residual_idm
+            except ValueError as e:
+                raise ConfigError("controller", f"{ZERO_RESIDUAL!r}: {e}",
+                                  f"{ZERO_RESIDUAL} with an experiment that trains a residual (e.g. "
+                                  "experiment=ring_lagrangian_ppo_follow), or a classical controller (idm, ovm, soft, "
+                                  "cacc)") from None
+        elif controller == "base":  # the experiment's residual base driving alone: what the learned residual adds to
             try:
                 factory = residual_base_factory(cfg)  # refuses a chain without residual_idm
             except ValueError as e:
@@ -85,9 +95,9 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
                                   ) from None
         else:
             factory = classic_factory(controller)
-        label = f"{controller}-as-CAV"
+        label = ZERO_RESIDUAL if controller == ZERO_RESIDUAL else f"{controller}-as-CAV"
         eval_cfg = cfg
-        if "residual_idm" in cfg.transforms.chain:  # the controller drives the CAV itself, not a residual
+        if "residual_idm" in cfg.transforms.chain and controller != ZERO_RESIDUAL:  # a classical controller drives the CAV
             eval_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
             eval_cfg.transforms.chain = [c for c in cfg.transforms.chain if c != "residual_idm"]
     if cfg.env.backend == "sumo":  # the caller's choice: a checkpoint's own config says torch
