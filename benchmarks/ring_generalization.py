@@ -385,6 +385,7 @@ def main(argv=None) -> dict:
                 "eval.sensor_filter_speed": "--sensor-filter-model SPEED",
                 "eval.sensor_filter_tau": "--sensor-filter-model TAU"}.get(e.field, e.field)
         raise SystemExit(f"{flag}: {e.problem}; allowed: {e.allowed}") from None
+
     def baseline_factory(spec: str):
         if spec == "base":
             return residual_base_factory(run_cfg)
