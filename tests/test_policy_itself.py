@@ -493,6 +493,12 @@ def test_generalization_runs_the_classical_baselines_behind_the_runs_layer(tmp_p
     assert (out / "fast_steps.png").stat().st_size > 10_000  # --plot: episode 0 of the case
     with pytest.raises(SystemExit, match=r"brake_from_30.*allowed: .*brake_from_25"):  # before any rollout
         mod.main(["--checkpoint", str(run), "--cases", "brake_from_30", "--out", str(tmp_path / "bad")])
+    # a baseline the run cannot have (this run trains no residual) or a misspelt one: refused before any rollout
+    with pytest.raises(SystemExit, match=r"--baselines: 'zero_residual': .* lacks residual_idm"):
+        mod.main(["--checkpoint", str(run), "--cases", "fast_steps", "--baselines", "idm", "zero_residual",
+                  "--out", str(tmp_path / "bad")])
+    with pytest.raises(SystemExit, match=r"--baselines: 'idmm'"):
+        mod.main(["--checkpoint", str(run), "--cases", "fast_steps", "--baselines", "idmm", "--out", str(tmp_path / "bad")])
     assert not (tmp_path / "bad").exists()
 
 
