@@ -522,15 +522,12 @@ def scorecard_margins(dirs, *, rmse_bar: float = 0.2) -> list[dict]:
             met.append(case_bars(x, rmse_bar=rmse_bar, others=pool))
         first = runs[0][1]["results"][c]
         _, ref = _shown_reference(first, pool)
-        rows = {"idm": first["idm"], **pool, **{o: next(g["results"][c][o] for _, g in runs if o in g["results"][c])
-                                                for o in others if o not in pool}}
+        crows = classical_rows(runs, c, ["idm", *pool, *(o for o in others if o not in pool)], rmse_bar=rmse_bar)
         classical = {k: (100.0 * (r["jerk"] / ref["jerk"] - 1.0), 100.0 * (r["return"] - ref["return"]) / abs(ref["return"]))
-                     for k, r in rows.items() if r["collisions"] == 0 and r is not ref}
-        judge = bar_reference(first, pool)[1]  # None where no stand-in completes: jerk and return not judged
+                     for k, (r, _) in crows.items() if r["collisions"] == 0 and r is not ref}
         out.append({"case": c, "reference": name, "clean": all(v is not False for m in met for v in m.values()),
-                    "jerk": jerk, "return": ret, "classical": classical, "baselines": list(rows),
-                    "classical_clean": [k for k, r in rows.items()
-                                        if _meets_every_bar(row_bars(r, judge, rmse_bar=rmse_bar))]})
+                    "jerk": jerk, "return": ret, "classical": classical, "baselines": list(crows),
+                    "classical_clean": [k for k, (_, bars) in crows.items() if _meets_every_bar(bars)]})
     return out
 
 
