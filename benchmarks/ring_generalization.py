@@ -71,6 +71,24 @@ seed draws other stops:
 - ``random_stops_fast``: holds of 8-15 s at 16-24 m/s, stands of 3-10 s, at 2-3 m/s^2;
 - ``random_stops_wide``: holds of 5-20 s at 6-22 m/s, stands of 2-15 s, at 1.5-3 m/s^2.
 
+Nine more (``--cases fresh_5``), fixed after the default (``experiment=ring_lagrangian_ppo_follow``) and every
+deploy-time setting of it had been picked, and before anything was evaluated on them: an out-of-sample test of the
+default as it stands after all the picks made on the groups above. One or more per kind of head the acceptance asks
+the policy to hold on (stop-and-go, braking to a standstill, speeds outside the training range, another ring length,
+other human parameters), drawn per episode where the profile allows:
+
+- ``random_stops_slow_long``: ``random_stop_and_go`` with holds of 10-25 s at 5-12 m/s, stands of 5-20 s, braking and
+  driving off at 1-2 m/s^2;
+- ``brake_from_13_late``: ``emergency_brake`` from 13 m/s down to 0 m/s at 120 s;
+- ``brake_from_23``: ``emergency_brake`` from 23 m/s, above the training range, down to 0 m/s at 80 s;
+- ``steps_21_27``: ``random_steps`` at 21-27 m/s, period 20 s, above the training range;
+- ``sine_23``: ``sine`` at 23 +- 3 m/s, period 50 s, above the training range;
+- ``sine_10``: ``sine`` at 10 +- 5 m/s, period 30 s, inside the training range;
+- ``perturbation_12``: ``random_perturbation`` around 12 m/s, +-4 m/s knots every 6 s;
+- ``ramps_ring_350``: the training profile, ``random_ramps``, at 4-18 m/s on a 350 m ring;
+- ``perturbation_10_humans_40pct``: ``random_perturbation`` around 10 m/s, +-3 m/s knots every 5 s, with the humans'
+  parameters spread +-40 %.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base's laws alone; ``zero_residual``: the run's deployed chain, drive-off cap and join included, with
@@ -181,6 +199,23 @@ def cases(seconds: float) -> dict[str, dict]:
         "random_stops_wide": {"profile": "random_stop_and_go", "kwargs": {
             "v_low": 6.0, "v_high": 22.0, "hold_min": 5.0, "hold_max": 20.0, "stop_min": 2.0, "stop_max": 15.0,
             "rate_min": 1.5, "rate_max": 3.0}},
+        # fresh_5: fixed after the default and its deploy-time settings were picked, before anything ran on them
+        "random_stops_slow_long": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 5.0, "v_high": 12.0, "hold_min": 10.0, "hold_max": 25.0, "stop_min": 5.0, "stop_max": 20.0,
+            "rate_min": 1.0, "rate_max": 2.0}},
+        "brake_from_13_late": {"profile": "emergency_brake", "kwargs": {"start": 120.0, "v_cruise": 13.0, "v_low": 0.0}},
+        "brake_from_23": {"profile": "emergency_brake", "kwargs": {"start": 80.0, "v_cruise": 23.0, "v_low": 0.0}},
+        "steps_21_27": {"profile": "random_steps", "kwargs": {"v_low": 21.0, "v_high": 27.0, "period": 20.0,
+                                                              "v_init": 24.0}},
+        "sine_23": {"profile": "sine", "kwargs": {"v_star": 23.0, "amplitude": 3.0, "period": 50.0}},
+        "sine_10": {"profile": "sine", "kwargs": {"v_star": 10.0, "amplitude": 5.0, "period": 30.0}},
+        "perturbation_12": {"profile": "random_perturbation", "kwargs": {"v_star": 12.0, "amplitude": 4.0,
+                                                                         "period": 6.0}},
+        "ramps_ring_350": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 18.0},
+                           "env": {"ring_length": 350.0}},
+        "perturbation_10_humans_40pct": {"profile": "random_perturbation", "kwargs": {"v_star": 10.0, "amplitude": 3.0,
+                                                                                      "period": 5.0},
+                                         "eval": {"hdv_param_noise": 0.4}},
     }
 
 
@@ -194,9 +229,12 @@ FRESH_3 = ("stop_and_go_12_slow", "stop_and_go_18_long_stop", "brake_from_20", "
 FRESH_4 = ("stop_and_go_14_short_hold", "stop_and_go_16_gentle", "stop_and_go_13_ring_300", "brake_from_17",
            "stop_and_go_11_humans_50pct")
 RANDOM_STOPS = ("random_stops", "random_stops_fast", "random_stops_wide")
-GROUPS = {"held_out": tuple(n for n in cases(0.0) if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS),
+FRESH_5 = ("random_stops_slow_long", "brake_from_13_late", "brake_from_23", "steps_21_27", "sine_23", "sine_10",
+           "perturbation_12", "ramps_ring_350", "perturbation_10_humans_40pct")
+GROUPS = {"held_out": tuple(n for n in cases(0.0)
+                            if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
-          "random_stops": RANDOM_STOPS}
+          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5}
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:
