@@ -89,6 +89,10 @@ other human parameters), drawn per episode where the profile allows:
 - ``perturbation_10_humans_40pct``: ``random_perturbation`` around 10 m/s, +-3 m/s knots every 5 s, with the humans'
   parameters spread +-40 %.
 
+One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
+itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
+compares with the classical controllers on the heads it learned on.
+
 For each case the policy runs with its safety layer, without it (from the standard start
 and the close starts of ``eval.close_starts``), and IDM-as-CAV (and any ``--baselines``; ``base``: the
 run's residual base's laws alone; ``zero_residual``: the run's deployed chain, drive-off cap and join included, with
@@ -199,6 +203,8 @@ def cases(seconds: float) -> dict[str, dict]:
         "random_stops_wide": {"profile": "random_stop_and_go", "kwargs": {
             "v_low": 6.0, "v_high": 22.0, "hold_min": 5.0, "hold_max": 20.0, "stop_min": 2.0, "stop_max": 15.0,
             "rate_min": 1.5, "rate_max": 3.0}},
+        # training: the training profile itself (env.profile_kwargs of the default), not a held-out case
+        "training_ramps": {"profile": "random_ramps", "kwargs": {"v_low": 2.0, "v_high": 20.0}},
         # fresh_5: fixed after the default and its deploy-time settings were picked, before anything ran on them
         "random_stops_slow_long": {"profile": "random_stop_and_go", "kwargs": {
             "v_low": 5.0, "v_high": 12.0, "hold_min": 10.0, "hold_max": 25.0, "stop_min": 5.0, "stop_max": 20.0,
@@ -231,10 +237,35 @@ FRESH_4 = ("stop_and_go_14_short_hold", "stop_and_go_16_gentle", "stop_and_go_13
 RANDOM_STOPS = ("random_stops", "random_stops_fast", "random_stops_wide")
 FRESH_5 = ("random_stops_slow_long", "brake_from_13_late", "brake_from_23", "steps_21_27", "sine_23", "sine_10",
            "perturbation_12", "ramps_ring_350", "perturbation_10_humans_40pct")
+TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
-                            if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5),
+                            if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
-          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5}
+          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "training": TRAINING}
+
+
+KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",
+         "other human parameters")  # the kinds of head the acceptance asks the policy to hold on
+
+
+def case_kinds(case: dict, *, seed: int, v_train: float, episodes: int = 4) -> tuple[str, ...]:
+    """The kinds of :data:`KINDS` that ``case`` (an entry of :func:`cases`) is: a head that stops and drives off
+    (``piecewise``, ``random_stop_and_go``), one that brakes to a standstill (``emergency_brake`` down to 0 m/s), one
+    faster than the training's top speed ``v_train`` (m/s) on any of the ``episodes`` episodes its ``seed`` draws, a
+    ring length or a spread of the humans' parameters of its own; several, or none."""
+    import torch
+
+    from mixed_traffic.profiles import make_profile
+
+    seconds = case.get("eval", {}).get("episode_seconds", 200.0)
+    prof = make_profile(case["profile"], **case["kwargs"])
+    params = prof.sample(episodes, torch.Generator().manual_seed(seed))
+    top = max(float(prof.speed(torch.full((episodes,), t), params).max()) for t in torch.arange(0.0, seconds, 0.5).tolist())
+    kinds = {KINDS[0]: case["profile"] in ("piecewise", "random_stop_and_go"),
+             KINDS[1]: case["profile"] == "emergency_brake" and case["kwargs"].get("v_low", 2.0) == 0.0,
+             KINDS[2]: top > v_train + 1e-6, KINDS[3]: "ring_length" in case.get("env", {}),
+             KINDS[4]: "hdv_param_noise" in case.get("eval", {})}
+    return tuple(k for k, v in kinds.items() if v)
 
 
 def case_names(requested: list[str], all_cases: dict) -> list[str]:

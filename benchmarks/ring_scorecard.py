@@ -9,7 +9,8 @@ zero, stands for every run's when they share their config, as seeds of one exper
 ``OUT/scorecard.md``: per group, the table of
 ``python -m mixed_traffic.evaluation.results --generalization ... --bars`` (which acceptance bars each case
 misses and on how many runs, and what each controller meets alone), a line counting the clean cases over
-all groups and one on what the learned residual adds (``results.residual_line``), and draws
+all groups, one on what the learned residual adds (``results.residual_line``) and the count by kind of head
+(``results.kinds_table``: stop-and-go, braking to a standstill, above the training speeds, ...), and draws
 ``OUT/scorecard.png`` (per case, the policy's jerk and return against the bars' reference over
 the runs, beside the classical controllers'). A group whose output is already there is not run again (``--rerun``
 to run it anyway) unless it lacks a classical controller now asked for::
@@ -67,6 +68,25 @@ def classical_for(run: str, asked: list[str] | None) -> list[str]:
     return list(asked)
 
 
+def case_kinds(run: str, groups: list[str], seconds: float) -> dict[str, tuple[str, ...]]:
+    """Case -> its kinds of head (``ring_generalization.case_kinds`` at its group's evaluation seed), against the top
+    speed of ``run``'s training profile; ``{}`` where that profile has none (no "above the training speeds")."""
+    import importlib.util
+
+    from mixed_traffic.evaluation.policies import checkpoint_config
+    from mixed_traffic.profiles import make_profile
+
+    env = checkpoint_config(run)[0].env
+    v_train = getattr(make_profile(env.profile, **(env.profile_kwargs or {})), "v_high", None)
+    if v_train is None:
+        return {}
+    spec = importlib.util.spec_from_file_location("ring_generalization", Path(__file__).with_name("ring_generalization.py"))
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    every = gen.cases(seconds)
+    return {c: gen.case_kinds(every[c], seed=SEEDS[g], v_train=float(v_train)) for g in groups for c in gen.GROUPS[g]}
+
+
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--runs", nargs="+", required=True, help="run directories (one per seed) or final.pt files")
@@ -97,6 +117,7 @@ def main(argv=None) -> str:
     from mixed_traffic.evaluation.results import (
         beaten_line,
         generalization_table,
+        kinds_table,
         residual_line,
         scorecard_margins,
         scorecard_plot,
@@ -149,10 +170,16 @@ def main(argv=None) -> str:
     beaten = [f"{e['case']} ({', '.join(e['classical_clean'])})" for m in margins.values() for e in m
               if not e["clean"] and e["classical_clean"]]
     residual = residual_line([e for m in margins.values() for e in m])
+    kinds = case_kinds(a.runs[0], a.groups, a.seconds)
+    by_kind = (["By the kind of head (those the acceptance names; a case may be of several kinds, or of none): the cases "
+                "that meet every bar, the policy's on every run, each classical controller's without a layer on the "
+                "same episodes.", "", kinds_table([e for m in margins.values() for e in m], kinds,
+                                                  above="above the training speeds"), ""] if kinds else [])
     head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
             f"{clean} of {total} cases meet every bar on every run."
             + (" " + beaten_line(total - clean, beaten, "each table's last column: the bars each classical "
-                                  "controller misses") if clean < total else ""), "", *([residual, ""] if residual else [])]
+                                  "controller misses") if clean < total else ""), "", *([residual, ""] if residual else []),
+            *by_kind]
     md = "\n".join(head + parts)
     (out / "scorecard.md").write_text(md)
     scorecard_plot(margins, out / "scorecard.png", title=f"Scorecard: {len(a.runs)} run(s), {clean} of {total} cases "

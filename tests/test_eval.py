@@ -327,6 +327,46 @@ def test_the_scorecard_says_what_the_learned_residual_adds(tmp_path):
         "it on every run on 2 (x, y).")
 
 
+def test_the_scorecard_counts_clean_cases_by_the_kind_of_head(benchmark_script):
+    """The scorecard's count by the kinds of head the acceptance names: a case counts in every kind it is of, the
+    policy's clean cases on every run beside each classical controller evaluated on every case, then the cases within
+    the training speeds, those of no kind, and all. The kinds come from the case itself: its profile, a head faster
+    than the training's top speed on an episode of its seed, its own ring length or spread of human parameters."""
+    from mixed_traffic.evaluation.results import ZERO_RESIDUAL, kinds_table
+
+    both = ["idm", ZERO_RESIDUAL]
+    margins = [{"case": "stops_fast", "clean": False, "classical_clean": [], "baselines": both},
+               {"case": "stops", "clean": True, "classical_clean": [ZERO_RESIDUAL], "baselines": both},
+               {"case": "sine", "clean": False, "classical_clean": ["idm"], "baselines": both},
+               {"case": "ring", "clean": True, "classical_clean": ["idm", ZERO_RESIDUAL], "baselines": ["idm"]}]
+    kinds = {"stops_fast": ("stop-and-go", "above"), "stops": ("stop-and-go",), "sine": (), "ring": ("ring",)}
+    assert kinds_table(margins, kinds, above="above").splitlines() == [
+        "| kind of head | cases | the policy (every run) | idm |",  # zero_residual: not evaluated on every case
+        "|---|---|---|---|",
+        "| stop-and-go | 2 | 1 of 2 | 0 of 2 |",
+        "| above | 1 | 0 of 1 | 0 of 1 |",
+        "| ring | 1 | 1 of 1 | 1 of 1 |",
+        "| within the training speeds | 3 | 2 of 3 | 2 of 3 |",
+        "| other heads within the training speeds | 1 | 0 of 1 | 1 of 1 |",
+        "| every case | 4 | 2 of 4 | 2 of 4 |"]
+    with pytest.raises(KeyError, match="no kinds for the cases \\['ring'\\]"):
+        kinds_table(margins, {k: v for k, v in kinds.items() if k != "ring"}, above="above")
+
+    gen = benchmark_script("ring_generalization")
+    every = gen.cases(200.0)
+
+    def kinds_of(name, seed=2000):
+        return gen.case_kinds(every[name], seed=seed, v_train=20.0)
+
+    assert kinds_of("stop_and_go_10_ring_250") == ("stop-and-go", "another ring length")
+    assert kinds_of("brake_from_25") == ("braking to a standstill", "above the training speeds")
+    assert kinds_of("brake_22_to_8") == ("above the training speeds",)  # brakes, but not to a standstill
+    assert kinds_of("stop_and_go_20") == ("stop-and-go",)  # at the training's top speed, not above it
+    assert kinds_of("perturbation_10_humans_40pct", 12000) == ("other human parameters",)
+    assert kinds_of("sine_10", 12000) == ()
+    assert gen.case_kinds(every["sine_10"], seed=12000, v_train=12.0) == ("above the training speeds",)
+
+
 def test_generalization_table_gives_each_case_its_range_over_the_seeds(tmp_path, capsys):
     from mixed_traffic.evaluation.results import generalization_table, main
 

@@ -854,12 +854,12 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert mod.case_names(["sine_fast", "held_out"], all_cases)[:2] == ["sine_fast", "stop_and_go"]
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
     with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3', "
-                                         r"'fresh_4', 'random_stops'\]"):
+                                         r"'fresh_4', 'random_stops', 'fresh_5', 'training'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
     assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6 and len(mod.GROUPS["fresh_3"]) == 5
-    assert len(mod.GROUPS["fresh_4"]) == 5
+    assert len(mod.GROUPS["fresh_4"]) == 5 and len(mod.GROUPS["fresh_5"]) == 9
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
@@ -890,6 +890,13 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         stops = ((v[1:] < 1e-6) & (v[:-1] >= 1e-6)).sum(0)
         assert bool((stops >= 3).all()) and float(v.max()) <= 24.0 + 1e-4, name
         assert float((v - w).abs().max()) > 5.0, name
+    # fresh_5: each kind of head the acceptance names, inside the CAV's reach; three drive above the training range
+    above = {"brake_from_23", "steps_21_27", "sine_23"}
+    for name in mod.GROUPS["fresh_5"]:
+        v = head_speeds(name, 12000)
+        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
+        assert (float(v.max()) > 20.5) == (name in above), name
+    assert float(head_speeds("random_stops_slow_long", 12000).min()) == 0.0
     fixed = head_speeds("stop_and_go_15", 3000)
     assert torch.equal(fixed, head_speeds("stop_and_go_15", 2000))
 

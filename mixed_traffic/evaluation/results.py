@@ -555,6 +555,38 @@ def residual_line(margins: list[dict]) -> str:
             + (f", above it on every run on {len(higher)} ({', '.join(higher)})" if higher else "") + ".")
 
 
+def kinds_table(margins: list[dict], kinds: dict[str, tuple[str, ...]], *, above: str) -> str:
+    """The scorecard's count by kind of head (``margins``: :func:`scorecard_margins`'s entries, of every group;
+    ``kinds``: case -> the kinds it is, a case may be of several or of none; ``above``: the kind of the heads faster
+    than the training's, whose complement is the table's "within the training speeds" row). Per kind, a markdown row
+    of how many of its cases meet every bar on every run (the policy) and without a layer on the same episodes (each
+    classical controller evaluated on all of them: IDM-as-CAV, the stand-ins, :data:`ZERO_RESIDUAL`), then the rows
+    "within the training speeds", "other heads within the training speeds" (of no kind) and "every case". A case
+    missing from ``kinds`` raises ``KeyError`` naming it."""
+    missing = [e["case"] for e in margins if e["case"] not in kinds]
+    if missing:
+        raise KeyError(f"kinds_table: no kinds for the cases {missing}")
+    controllers = [c for c in dict.fromkeys(b for e in margins for b in e.get("baselines", ()))
+                   if all(c in e.get("baselines", ()) for e in margins)]
+    names = list(dict.fromkeys(k for e in margins for k in kinds[e["case"]]))
+    rows = [(k, [e for e in margins if k in kinds[e["case"]]]) for k in names]
+    rows += [("within the training speeds", [e for e in margins if above not in kinds[e["case"]]]),
+             ("other heads within the training speeds", [e for e in margins if not kinds[e["case"]]]),
+             ("every case", list(margins))]
+
+    def cell(entries, clean) -> str:
+        return f"{sum(map(clean, entries))} of {len(entries)}"
+
+    lines = ["| kind of head | cases | the policy (every run) | " + " | ".join(controllers) + " |",
+             "|---|---|---|" + "---|" * len(controllers)]
+    for kind, entries in rows:
+        if entries:
+            lines.append(f"| {kind} | {len(entries)} | {cell(entries, lambda e: e['clean'])} | "
+                         + " | ".join(cell(entries, lambda e, c=c: c in e["classical_clean"]) for c in controllers)
+                         + " |")
+    return "\n".join(lines)
+
+
 def scorecard_plot(groups: dict, path, *, title: str = "") -> None:
     """One figure of the scorecard (``groups``: group name -> that group's :func:`scorecard_margins`): per case, the
     policy's jerk and return against the bars' reference (IDM-as-CAV, or its stand-in where it collides, marked †)
