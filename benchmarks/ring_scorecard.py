@@ -68,7 +68,7 @@ def classical_for(run: str, asked: list[str] | None) -> list[str]:
     return list(asked)
 
 
-def case_kinds(run: str, groups: list[str], seconds: float) -> dict[str, tuple[str, ...]]:
+def kinds_of_cases(run: str, groups: list[str], seconds: float) -> dict[str, tuple[str, ...]]:
     """Case -> its kinds of head (``ring_generalization.case_kinds`` at its group's evaluation seed), against the top
     speed of ``run``'s training profile; ``{}`` where that profile has none (no "above the training speeds")."""
     import importlib.util
@@ -170,7 +170,7 @@ def main(argv=None) -> str:
     beaten = [f"{e['case']} ({', '.join(e['classical_clean'])})" for m in margins.values() for e in m
               if not e["clean"] and e["classical_clean"]]
     residual = residual_line([e for m in margins.values() for e in m])
-    kinds = case_kinds(a.runs[0], a.groups, a.seconds)
+    kinds = kinds_of_cases(a.runs[0], a.groups, a.seconds)
     by_kind = (["By the kind of head (those the acceptance names; a case may be of several kinds, or of none): the cases "
                 "that meet every bar, the policy's on every run, each classical controller's without a layer on the "
                 "same episodes.", "", kinds_table([e for m in margins.values() for e in m], kinds,

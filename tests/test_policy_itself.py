@@ -963,6 +963,13 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert (clean < total) == (f"Where the policy misses a bar ({total - clean} of the cases)" in head), head
     assert "| classical controllers: bars missed |" in md
     assert "cacc: jerk − IDM's" in md  # beside the first run only, and still in the table
+    # the count by kind of head: four of fresh_3's five stop and drive off, one brakes to a standstill, one each has
+    # its own ring length and its own human parameters; none drives above the training's 20 m/s
+    assert "| kind of head | cases | the policy (every run) | idm | cacc |" in md
+    for row in ("| stop-and-go | 4 |", "| braking to a standstill | 1 |", "| another ring length | 1 |",
+                "| other human parameters | 1 |", "| within the training speeds | 5 |", "| every case | 5 |"):
+        assert row in md, row
+    assert "| above the training speeds |" not in md
     from mixed_traffic.evaluation.results import REFERENCE_FALLBACK, ZERO_RESIDUAL
     # by default the scorecard runs the stand-ins for a colliding IDM, and the policy with its learned residual at zero
     assert mod.CLASSICAL == (*REFERENCE_FALLBACK, ZERO_RESIDUAL)
