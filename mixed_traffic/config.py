@@ -800,6 +800,11 @@ class EvalConfig:
     rmse_bar: float = 1.0
     wave: WaveEvalConfig = field(default_factory=WaveEvalConfig)
     intervention_bar: float = 0.05  # largest share of steps the safety layer may change (per profile)
+    # a classical controller (e.g. idm: IDM driving the CAV) run on the same episodes when a checkpoint is evaluated,
+    # under the task's reward alone (no layer): the report compares the policy's jerk and return with its on every
+    # profile, with the layer and without it from the standard start, and the acceptance gains the bars "jerk at most
+    # its" and "return at least its" (null: no reference, no such bars)
+    reference: str | None = None
     # the policy itself: every profile again with the safety layer removed (raw actions
     # executed), from the standard start and from each of these start spacings (m)
     without_layer: bool = True

@@ -568,6 +568,51 @@ def test_mt_eval_controller_zero_residual_evaluates_the_experiments_deployed_cla
     assert not (tmp_path / "none").exists()
 
 
+def test_the_report_judges_the_jerk_and_return_bars_against_idm_as_cav_on_the_same_episodes(tmp_path):
+    """``eval.reference: idm`` (the ring's Lagrangian PPO experiments; what ``mt-main`` prints): a checkpoint's report
+    also runs IDM driving the CAV, under the task's reward alone, on the same episodes, and compares the policy's jerk
+    and return with it on every profile, with the layer and without it; the acceptance's ``pass`` then needs "jerk at
+    most IDM-as-CAV's" and "return at least its". The reference equals ``mt-eval controller=idm transforms=reward``
+    on the same episodes. A bad reference fails naming ``eval.reference`` before anything runs or is written."""
+    from mixed_traffic.evaluation import evaluate_and_report
+    from mixed_traffic.evaluation.policies import checkpoint_config
+    from mixed_traffic.validation import ConfigError
+
+    run = _tiny_scratch_run(tmp_path / "run")
+    assert compose(["experiment=ring_lagrangian_ppo_follow"]).eval.reference == "idm"  # mt-main's default
+    assert checkpoint_config(run)[0].eval.reference == "idm"  # and the run's own, kept by mt-eval checkpoint=...
+    cfg = compose(["trainer.progress=false", *SHORT, "eval.close_starts=[]"])
+    rep = evaluate_and_report(cfg, tmp_path / "eval", checkpoint=run)
+    ref = rep["reference"]
+    assert ref["controller"] == "idm-as-CAV" and list(ref["profiles"]) == ["random_steps", "emergency_brake"]
+    idm_cfg = checkpoint_config(run)[0]
+    idm_cfg.eval = cfg.eval
+    idm_cfg.transforms.chain = ["non_negative_reward"]
+    idm = evaluate_and_report(idm_cfg, tmp_path / "idm", controller="idm")
+    rows = []
+    for prof, e in ref["profiles"].items():
+        m = idm["profiles"][prof]["metrics"]
+        assert e["reference"]["jerk"] == pytest.approx(m["mean_abs_jerk"]["mean"], rel=1e-6)
+        assert e["reference"]["return"] == pytest.approx(m["return"]["mean"], rel=1e-6)
+        assert set(e) == {"reference", "with the layer", "without the layer"}
+        own = rep["profiles"][prof]["metrics"]
+        assert e["with the layer"]["jerk_pct"] == pytest.approx(
+            100 * (own["mean_abs_jerk"]["mean"] / m["mean_abs_jerk"]["mean"] - 1), abs=1e-6)
+        assert e["with the layer"]["return_diff"] == pytest.approx(own["return"]["mean"] - m["return"]["mean"], abs=1e-3)
+        rows += [e["with the layer"], e["without the layer"]]
+    acc = rep["acceptance"]
+    assert acc["jerk_within_reference"] == all(r["jerk_pct"] <= 0 for r in rows)
+    assert acc["return_within_reference"] == all(r["return_diff"] >= 0 for r in rows)
+    assert acc["pass"] == all(v for k, v in acc.items() if isinstance(v, bool) and k != "pass")
+    assert list(acc)[-1] == "pass"
+    md = (tmp_path / "eval" / "report.md").read_text()
+    assert "Against idm-as-CAV on the same episodes" in md and "| without the layer: jerk − its |" in md
+    for bad in ("nonsense", "idm:s0"):
+        with pytest.raises(ConfigError, match=rf"eval.reference: '{bad}' is not a classical controller; allowed: idm,"):
+            evaluate_and_report(compose([*SHORT, f"eval.reference={bad}"]), tmp_path / "bad", checkpoint=run)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
     """``mt-eval experiment=ring_lagrangian_ppo_band controller=base``: the experiment's scheduled base drives
     the CAV alone, on the episodes a checkpoint of the experiment is evaluated on, with and without the

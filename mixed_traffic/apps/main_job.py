@@ -71,6 +71,13 @@ def run_main(cfg: DictConfig) -> dict:
         nl = sum(r["collisions"] for starts in rep["without_layer"].values() for r in starts.values())
         print(f"without layer : {nl} collisions (standard and close starts), min gap after warm-up "
               f"{acc['no_layer_min_gap_after_warmup']:.2f} m, max head gap {acc['no_layer_max_head_gap']:.2f} m")
+    ref = rep.get("reference")
+    if ref:
+        rows = [v for e in ref["profiles"].values() for k, v in e.items() if k != "reference"]
+        jerk, ret = [r["jerk_pct"] for r in rows], [r["return_diff"] for r in rows]
+        print(f"against {ref['controller']}: jerk {min(jerk):+.2f}..{max(jerk):+.2f} % of its (at most its: "
+              f"{acc['jerk_within_reference']}), return {min(ret):+.1f}..{max(ret):+.1f} (at least its: "
+              f"{acc['return_within_reference']}); every profile, with and without the layer")
     print(f"acceptance    : pass={acc['pass']}")
     return {"run_dir": run_dir, "report": rep, "summary": s}
 

@@ -66,10 +66,12 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
             from mixed_traffic.validation import with_deploy_overrides
 
             run_cfg = with_deploy_overrides(run_cfg, deploy_overrides)
-        run_seconds = run_cfg.eval.get("episode_seconds")
+        run_seconds, run_reference = run_cfg.eval.get("episode_seconds"), run_cfg.eval.get("reference")
         run_cfg.eval = cfg.eval  # evaluation settings come from the caller
         if cfg.eval.get("episode_seconds") is None and run_seconds is not None:
             run_cfg.eval.episode_seconds = run_seconds  # ... but a run's evaluation length is kept
+        if cfg.eval.get("reference") is None and run_reference is not None:
+            run_cfg.eval.reference = run_reference  # ... and the reference of its acceptance
         factory = policy_factory_from_state(run_cfg, state)
         label = str(checkpoint) + (" deployed with " + " ".join(f"{k}={v}" for k, v in deploy_overrides)
                                    if deploy_overrides else "")
@@ -100,12 +102,24 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
         if "residual_idm" in cfg.transforms.chain and controller != ZERO_RESIDUAL:  # a classical controller drives the CAV
             eval_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
             eval_cfg.transforms.chain = [c for c in cfg.transforms.chain if c != "residual_idm"]
+    run = evaluate
     if cfg.env.backend == "sumo":  # the caller's choice: a checkpoint's own config says torch
-        from mixed_traffic.evaluation.sumo import evaluate_on_sumo
-
-        report, traces = evaluate_on_sumo(eval_cfg, policy_factory=factory)
-    else:
-        report, traces = evaluate(eval_cfg, policy_factory=factory)
+        from mixed_traffic.evaluation.sumo import evaluate_on_sumo as run
+    reference = eval_cfg.eval.get("reference") if checkpoint is not None else None
+    if reference is not None:  # a bad name fails before any rollout
+        try:
+            ref_factory = classic_factory(reference)
+        except ValueError:
+            raise ConfigError("eval.reference", f"{reference!r} is not a classical controller",
+                              "idm, ovm, soft, cacc (NAME:key=number;... for parameters, e.g. 'idm:s0=6'), "
+                              "or null") from None
+    report, traces = run(eval_cfg, policy_factory=factory)
+    if reference is not None:
+        report["reference"] = against_reference(eval_cfg, report, reference, ref_factory, run)
+        acc = report["acceptance"]
+        acc.pop("pass")
+        acc.update(reference_bars(report["reference"]))
+        acc["pass"] = all(v for v in acc.values() if isinstance(v, bool))
     report["policy"] = label
     report["env"] = OmegaConf.to_container(eval_cfg.env, resolve=True)
     report["transforms"] = list(eval_cfg.transforms.chain)
@@ -119,6 +133,49 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
                          s_min=cfg.eval.s_min, s_max=cfg.eval.s_max, run_dir=run_dir)
     report["paths"] = {k: str(v) for k, v in paths.items()}
     return report
+
+
+def against_reference(cfg: DictConfig, report: dict, name: str, factory, run=evaluate) -> dict:
+    """The policy's jerk and return beside those of the classical controller ``name`` (``factory``:
+    :func:`~mixed_traffic.evaluation.policies.classic_factory`'s) on the same episodes: ``cfg`` (the policy's evaluated
+    config) with the chain cut to its reward transforms (no layer, no residual), run by ``run``. Per profile of
+    ``report``: the reference's mean ``|jerk|`` and return, its collisions, and for the policy with the layer
+    (``"with the layer"``, or ``"policy"`` without a layer in the chain) and without it from the standard start
+    (``"without the layer"``) its own, the jerk in % of the reference's and the return's difference."""
+    ref_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    ref_cfg.transforms.chain = [t for t in cfg.transforms.chain if t.endswith("_reward")]
+    ref_cfg.eval.without_layer = False
+    ref_rep, _ = run(ref_cfg, policy_factory=factory)
+    layered = "with the layer" if "safety_layer" in cfg.transforms.chain else "policy"
+    out = {}
+    for prof, entry in report["profiles"].items():
+        r = ref_rep["profiles"][prof]
+        ref = {"jerk": r["metrics"]["mean_abs_jerk"]["mean"], "return": r["metrics"]["return"]["mean"]}
+        rows = {layered: entry}
+        free = (report.get("without_layer") or {}).get(prof)
+        if free:
+            rows["without the layer"] = free[next(iter(free))]  # the standard start
+        out[prof] = {"reference": {**ref, "collisions": r["collisions"]}}
+        for label, e in rows.items():
+            jerk, ret = e["metrics"]["mean_abs_jerk"]["mean"], e["metrics"]["return"]["mean"]
+            out[prof][label] = {"jerk": jerk, "return": ret, "jerk_pct": 100.0 * (jerk / ref["jerk"] - 1.0),
+                                "return_diff": ret - ref["return"]}
+    return {"controller": f"{name}-as-CAV", "profiles": out}
+
+
+def reference_bars(comparison: dict) -> dict:
+    """The acceptance's bars against the reference (:func:`against_reference`'s ``comparison``): on every profile
+    where the reference completes its episodes without a collision, the policy's jerk at most its and the return at
+    least its, with the layer and without it (a reference that collides is no yardstick: that profile is left out
+    and named)."""
+    judged = {p: e for p, e in comparison["profiles"].items() if e["reference"]["collisions"] == 0}
+    rows = [v for e in judged.values() for k, v in e.items() if k != "reference"]
+    bars = {"jerk_within_reference": all(r["jerk_pct"] <= 0.0 for r in rows),
+            "return_within_reference": all(r["return_diff"] >= 0.0 for r in rows)}
+    skipped = sorted(set(comparison["profiles"]) - set(judged))
+    if skipped:
+        bars["reference_collided_on"] = ", ".join(skipped)
+    return bars
 
 
 def is_wave_ring(cfg: DictConfig) -> bool:
@@ -161,5 +218,5 @@ def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoin
     return report
 
 
-__all__ = ["is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
+__all__ = ["against_reference", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
            "read_scalars", "METRICS"]

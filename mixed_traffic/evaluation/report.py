@@ -105,6 +105,19 @@ def markdown(report: dict, title: str) -> str:
         for prof, starts in nl.items():
             for label, r in starts.items():
                 lines.append(f"| {prof} | {label} | " + " | ".join(_cells(r, NO_LAYER_COLUMNS)) + " |")
+    ref = report.get("reference")
+    if ref:
+        labels = [k for k in next(iter(ref["profiles"].values())) if k != "reference"]
+        lines += ["", f"Against {ref['controller']} on the same episodes (driving the CAV without a layer, under the "
+                      "task's reward): the policy's mean |jerk| in % of its, and the policy's return less its.", ""]
+        lines.append(f"| profile | {ref['controller']}: jerk (m/s3) | its return | "
+                     + " | ".join(f"{k}: jerk − its | {k}: return − its" for k in labels) + " |")
+        lines.append("|---|---|---|" + "---|---|" * len(labels))
+        for prof, e in ref["profiles"].items():
+            r = e["reference"]
+            note = f" ({r['collisions']} collisions: not judged)" if r["collisions"] else ""
+            lines.append(f"| {prof} | {r['jerk']:.4f}{note} | {r['return']:.1f} | "
+                         + " | ".join(f"{e[k]['jerk_pct']:+.2f} % | {e[k]['return_diff']:+.1f}" for k in labels) + " |")
     lam = report.get("lambda_over_training")
     if lam:
         lines += ["", f"λ over training: first {lam['first']:.3f}, max {lam['max']:.3f}, min {lam['min']:.3f}, "
