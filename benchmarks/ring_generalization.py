@@ -246,6 +246,7 @@ GROUPS = {"held_out": tuple(n for n in cases(0.0)
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",
          "other human parameters")  # the kinds of head the acceptance asks the policy to hold on
+ABOVE = KINDS[2]  # the kind whose complement is "within the training speeds" (results.kinds_table's above)
 
 
 def case_kinds(case: dict, *, seed: int, v_train: float, episodes: int = 4) -> tuple[str, ...]:
@@ -263,7 +264,7 @@ def case_kinds(case: dict, *, seed: int, v_train: float, episodes: int = 4) -> t
     top = max(float(prof.speed(torch.full((episodes,), t), params).max()) for t in torch.arange(0.0, seconds, 0.5).tolist())
     kinds = {KINDS[0]: case["profile"] in ("piecewise", "random_stop_and_go"),
              KINDS[1]: case["profile"] == "emergency_brake" and case["kwargs"].get("v_low", 2.0) == 0.0,
-             KINDS[2]: top > v_train + 1e-6, KINDS[3]: "ring_length" in case.get("env", {}),
+             ABOVE: top > v_train + 1e-6, KINDS[3]: "ring_length" in case.get("env", {}),
              KINDS[4]: "hdv_param_noise" in case.get("eval", {})}
     return tuple(k for k, v in kinds.items() if v)
 

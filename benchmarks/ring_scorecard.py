@@ -68,9 +68,10 @@ def classical_for(run: str, asked: list[str] | None) -> list[str]:
     return list(asked)
 
 
-def kinds_of_cases(run: str, groups: list[str], seconds: float) -> dict[str, tuple[str, ...]]:
-    """Case -> its kinds of head (``ring_generalization.case_kinds`` at its group's evaluation seed), against the top
-    speed of ``run``'s training profile; ``{}`` where that profile has none (no "above the training speeds")."""
+def kinds_of_cases(run: str, groups: list[str], seconds: float) -> tuple[dict[str, tuple[str, ...]], str]:
+    """``(case -> its kinds of head, the kind of the heads above the training speeds)``: ``ring_generalization``'s
+    ``case_kinds`` at each case's group's evaluation seed, against the top speed of ``run``'s training profile, and
+    its ``KINDS`` entry for those heads; ``{}`` for the first where that profile has no top speed."""
     import importlib.util
 
     from mixed_traffic.evaluation.policies import checkpoint_config
@@ -78,13 +79,14 @@ def kinds_of_cases(run: str, groups: list[str], seconds: float) -> dict[str, tup
 
     env = checkpoint_config(run)[0].env
     v_train = getattr(make_profile(env.profile, **(env.profile_kwargs or {})), "v_high", None)
-    if v_train is None:
-        return {}
     spec = importlib.util.spec_from_file_location("ring_generalization", Path(__file__).with_name("ring_generalization.py"))
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
+    if v_train is None:
+        return {}, gen.ABOVE
     every = gen.cases(seconds)
-    return {c: gen.case_kinds(every[c], seed=SEEDS[g], v_train=float(v_train)) for g in groups for c in gen.GROUPS[g]}
+    return ({c: gen.case_kinds(every[c], seed=SEEDS[g], v_train=float(v_train)) for g in groups for c in gen.GROUPS[g]},
+            gen.ABOVE)
 
 
 def main(argv=None) -> str:
@@ -170,11 +172,11 @@ def main(argv=None) -> str:
     beaten = [f"{e['case']} ({', '.join(e['classical_clean'])})" for m in margins.values() for e in m
               if not e["clean"] and e["classical_clean"]]
     residual = residual_line([e for m in margins.values() for e in m])
-    kinds = kinds_of_cases(a.runs[0], a.groups, a.seconds)
+    kinds, above = kinds_of_cases(a.runs[0], a.groups, a.seconds)
     by_kind = (["By the kind of head (those the acceptance names; a case may be of several kinds, or of none): the cases "
                 "that meet every bar, the policy's on every run, each classical controller's without a layer on the "
                 "same episodes.", "", kinds_table([e for m in margins.values() for e in m], kinds,
-                                                  above="above the training speeds"), ""] if kinds else [])
+                                                  above=above), ""] if kinds else [])
     head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
             f"{clean} of {total} cases meet every bar on every run."
             + (" " + beaten_line(total - clean, beaten, "each table's last column: the bars each classical "

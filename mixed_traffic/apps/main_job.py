@@ -73,7 +73,9 @@ def run_main(cfg: DictConfig) -> dict:
               f"{acc['no_layer_min_gap_after_warmup']:.2f} m, max head gap {acc['no_layer_max_head_gap']:.2f} m")
     ref = rep.get("reference")
     if ref:
-        rows = [v for e in ref["profiles"].values() for k, v in e.items() if k != "reference"]
+        from mixed_traffic.evaluation import policy_rows
+
+        rows = policy_rows(ref["profiles"])
         jerk, ret = [r["jerk_pct"] for r in rows], [r["return_diff"] for r in rows]
         print(f"against {ref['controller']}: jerk {min(jerk):+.2f}..{max(jerk):+.2f} % of its (at most its: "
               f"{acc['jerk_within_reference']}), return {min(ret):+.1f}..{max(ret):+.1f} (at least its: "

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from mixed_traffic.evaluation.harness import METRICS, episode_metrics, evaluate
+from mixed_traffic.evaluation.harness import METRICS, episode_metrics, evaluate, with_pass
 from mixed_traffic.evaluation.policies import (
     checkpoint_config,
     classic_factory,
@@ -116,10 +116,8 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     report, traces = run(eval_cfg, policy_factory=factory)
     if reference is not None:
         report["reference"] = against_reference(eval_cfg, report, reference, ref_factory, run)
-        acc = report["acceptance"]
-        acc.pop("pass")
-        acc.update(reference_bars(report["reference"]))
-        acc["pass"] = all(v for v in acc.values() if isinstance(v, bool))
+        report["acceptance"].update(reference_bars(report["reference"]))
+        with_pass(report["acceptance"])
     report["policy"] = label
     report["env"] = OmegaConf.to_container(eval_cfg.env, resolve=True)
     report["transforms"] = list(eval_cfg.transforms.chain)
@@ -163,13 +161,19 @@ def against_reference(cfg: DictConfig, report: dict, name: str, factory, run=eva
     return {"controller": f"{name}-as-CAV", "profiles": out}
 
 
+def policy_rows(profiles: dict) -> list[dict]:
+    """The policy's rows of :func:`against_reference`'s ``profiles`` (or some of them), every profile's with and
+    without the layer: what the reference's bars judge and ``mt-main`` sums up."""
+    return [v for e in profiles.values() for k, v in e.items() if k != "reference"]
+
+
 def reference_bars(comparison: dict) -> dict:
     """The acceptance's bars against the reference (:func:`against_reference`'s ``comparison``): on every profile
     where the reference completes its episodes without a collision, the policy's jerk at most its and the return at
     least its, with the layer and without it (a reference that collides is no yardstick: that profile is left out
     and named)."""
     judged = {p: e for p, e in comparison["profiles"].items() if e["reference"]["collisions"] == 0}
-    rows = [v for e in judged.values() for k, v in e.items() if k != "reference"]
+    rows = policy_rows(judged)
     bars = {"jerk_within_reference": all(r["jerk_pct"] <= 0.0 for r in rows),
             "return_within_reference": all(r["return_diff"] >= 0.0 for r in rows)}
     skipped = sorted(set(comparison["profiles"]) - set(judged))
@@ -218,5 +222,5 @@ def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoin
     return report
 
 
-__all__ = ["against_reference", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
+__all__ = ["against_reference", "policy_rows", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
            "read_scalars", "METRICS"]

@@ -500,5 +500,13 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         report["acceptance"]["no_layer_min_gap_after_warmup"] = gmin
         report["acceptance"]["no_layer_max_head_gap"] = hmax
         report["acceptance"]["no_layer_gap_within_bounds"] = bool(gmin >= e.s_min - 1e-6 and hmax <= e.s_max + 1e-6)
-    report["acceptance"]["pass"] = all(v for k, v in report["acceptance"].items() if isinstance(v, bool))
+    with_pass(report["acceptance"])
     return report, traces
+
+
+def with_pass(acceptance: dict) -> dict:
+    """``acceptance`` with its ``pass`` (re)computed and last: every boolean bar in it met (the figures beside them,
+    floats and names, are not bars). Bars added later (:func:`mixed_traffic.evaluation.reference_bars`) call it again."""
+    acceptance.pop("pass", None)
+    acceptance["pass"] = all(v for v in acceptance.values() if isinstance(v, bool))
+    return acceptance
