@@ -244,6 +244,131 @@ class Sine:
 
 
 @dataclass(frozen=True)
+class RandomSine:
+    """A smooth head: ``c + A sin(2 pi t / P + phi)`` with every part drawn per episode.
+
+    ``A`` from U[amplitude_min, amplitude_max], ``P`` from U[period_min, period_max], ``phi`` from U[0, 2 pi) and
+    the centre ``c`` from U[v_low + A, v_high - A], so the head stays within [v_low, v_high]. It complements
+    :class:`RandomRamps`, whose heads hold and ramp: here the head's acceleration changes all the time. Parameters
+    per episode: ``[c, A, P, phi]``.
+
+        >>> import torch
+        >>> p = RandomSine(v_low=5.0, v_high=15.0, amplitude_min=5.0, amplitude_max=5.0, period_min=20.0,
+        ...                period_max=20.0)
+        >>> knots = p.sample(1, torch.Generator().manual_seed(0))
+        >>> float(knots[0, 0]), float(knots[0, 1])
+        (10.0, 5.0)
+    """
+
+    v_low: float = 2.0
+    v_high: float = 20.0
+    amplitude_min: float = 1.0
+    amplitude_max: float = 6.0
+    period_min: float = 20.0
+    period_max: float = 80.0
+    horizon: float = 500.0  # unused: a sine needs no knots (accepted as the drawn profiles' common argument)
+
+    def __post_init__(self):
+        if not 0 <= self.v_low <= self.v_high:
+            raise ValueError(f"random_sine: v_low={self.v_low}, v_high={self.v_high} are invalid; "
+                             "allowed: 0 <= v_low <= v_high")
+        if not 0 <= self.amplitude_min <= self.amplitude_max <= (self.v_high - self.v_low) / 2:
+            raise ValueError(f"random_sine: amplitude_min={self.amplitude_min}, amplitude_max={self.amplitude_max} "
+                             f"are invalid; allowed: 0 <= amplitude_min <= amplitude_max <= (v_high - v_low) / 2 "
+                             f"= {(self.v_high - self.v_low) / 2}")
+        if not 0 < self.period_min <= self.period_max:
+            raise ValueError(f"random_sine: period_min={self.period_min}, period_max={self.period_max} are invalid; "
+                             "allowed: 0 < period_min <= period_max")
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        u = torch.rand(batch, 4, generator=generator)
+        amp = self.amplitude_min + (self.amplitude_max - self.amplitude_min) * u[:, 1]
+        centre = self.v_low + amp + (self.v_high - self.v_low - 2 * amp) * u[:, 0]
+        period = self.period_min + (self.period_max - self.period_min) * u[:, 2]
+        return torch.stack([centre, amp, period, 2.0 * math.pi * u[:, 3]], dim=-1)
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        c, a, p, phi = (params[..., i].to(t.dtype) for i in range(4))
+        return c + a * torch.sin(2.0 * math.pi * t / p + phi)
+
+
+@dataclass(frozen=True)
+class RandomMix:
+    """Each episode follows one of several drawn profiles, picked at random per episode.
+
+    ``parts`` maps a profile name of :data:`PROFILES` to its arguments; ``weights`` (one per part, default equal)
+    are the odds of each. A training distribution that holds several kinds of head, e.g. holds and ramps
+    (``random_ramps``) beside smooth oscillations (``random_sine``). Unlike :class:`RowProfiles`, which fixes a
+    row's part, the part is redrawn at every reset. Parameters per episode: ``[part index, part params...]``,
+    padded to the widest part.
+
+        >>> import torch
+        >>> mix = RandomMix(parts={"constant": {"v": 10.0}, "sine": {"v_star": 20.0, "amplitude": 0.0}})
+        >>> sorted(set(mix.speed(torch.zeros(64), mix.sample(64, torch.Generator().manual_seed(0))).tolist()))
+        [10.0, 20.0]
+    """
+
+    parts: dict = field(default_factory=lambda: {"random_ramps": {}, "random_sine": {}})
+    weights: tuple[float, ...] | None = None
+    # given to every part that takes the argument and does not set it (None: the part's own default)
+    v_low: float | None = None
+    v_high: float | None = None
+    v_init: float | None = None
+    horizon: float | None = None
+
+    def __post_init__(self):
+        if not self.parts or not isinstance(self.parts, dict):
+            raise ValueError(f"random_mix: parts={self.parts!r} is invalid; allowed: a mapping of one or more "
+                             f"profile names to their arguments")
+        for name in self.parts:
+            if name not in PROFILES or name in ("random_mix", "piecewise"):
+                raise ValueError(f"random_mix: part {name!r} is invalid; allowed: "
+                                 f"{sorted(set(PROFILES) - {'random_mix', 'piecewise'})}")
+        if self.weights is not None and (len(self.weights) != len(self.parts) or any(w < 0 for w in self.weights)
+                                         or sum(self.weights) <= 0):
+            raise ValueError(f"random_mix: weights={self.weights!r} is invalid; allowed: {len(self.parts)} "
+                             "non-negative numbers, not all 0")
+
+    @functools.cached_property
+    def built(self) -> tuple:
+        """The parts as profile objects, in ``parts``' order."""
+        out = []
+        for name, kwargs in self.parts.items():
+            kwargs = dict(kwargs or {})
+            takes = getattr(PROFILES[name], "__dataclass_fields__", {})
+            for arg in ("v_low", "v_high", "v_init", "horizon"):
+                if getattr(self, arg) is not None and arg in takes:
+                    kwargs.setdefault(arg, getattr(self, arg))
+            out.append(make_profile(name, **kwargs))
+        return tuple(out)
+
+    @functools.cached_property
+    def widths(self) -> tuple[int, ...]:
+        return tuple(int(part.sample(0).shape[-1]) for part in self.built)
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        w = torch.tensor(self.weights if self.weights is not None else [1.0] * len(self.parts), dtype=torch.float64)
+        which = torch.multinomial(w / w.sum(), batch, replacement=True, generator=generator) if batch else \
+            torch.zeros(0, dtype=torch.long)
+        out = torch.zeros(batch, 1 + max(self.widths))
+        out[:, 0] = which.float()
+        for j, part in enumerate(self.built):  # every part draws for the whole batch: a row's draw is its own
+            d = part.sample(batch, generator).float()
+            m = which == j
+            out[m, 1:1 + d.shape[-1]] = d[m]
+        return out
+
+    def speed(self, t: Tensor, params: Tensor) -> Tensor:
+        which = params[..., 0].long()
+        out = torch.empty_like(t)
+        for j, (part, k) in enumerate(zip(self.built, self.widths)):
+            m = which == j
+            if bool(m.any()):
+                out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
+        return out
+
+
+@dataclass(frozen=True)
 class PiecewiseLinear:
     """Speed through fixed (time, speed) knots, held constant outside them."""
 
@@ -355,6 +480,8 @@ PROFILES = {
     "random_perturbation": RandomPerturbation,
     "random_ramps": RandomRamps,
     "random_stop_and_go": RandomStopAndGo,
+    "random_sine": RandomSine,
+    "random_mix": RandomMix,
     "sine": Sine,
     "piecewise": PiecewiseLinear,
     "deeplcc_brake": deeplcc_brake,
@@ -378,4 +505,5 @@ def make_profile(name: str, **kwargs):
 
 
 __all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomStopAndGo", "RandomPerturbation", "Sine",
+           "RandomSine", "RandomMix",
            "PiecewiseLinear", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

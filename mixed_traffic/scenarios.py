@@ -189,7 +189,8 @@ class TrafficScenario:
 
     def make_profile(self):
         kwargs = dict(self.profile_kwargs)
-        if self.profile in ("random_steps", "random_perturbation", "random_ramps", "random_stop_and_go"):
+        if self.profile in ("random_steps", "random_perturbation", "random_ramps", "random_stop_and_go", "random_sine",
+                            "random_mix"):
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)
 

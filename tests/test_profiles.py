@@ -54,3 +54,53 @@ def test_bad_profile_names_and_arguments():
         make_profile("warp")
     with pytest.raises(ValueError, match="bad arguments"):
         make_profile("sine", amplitud=3.0)
+
+
+def test_random_sine_stays_in_range_and_draws_every_part_per_episode():
+    prof = make_profile("random_sine", v_low=2.0, v_high=20.0, amplitude_min=1.0, amplitude_max=6.0,
+                        period_min=20.0, period_max=80.0)
+    p = prof.sample(256, torch.Generator().manual_seed(4))
+    t = torch.linspace(0, 200, 801)
+    v = torch.stack([prof.speed(t, p[i].expand(801, -1)) for i in range(256)])
+    assert v.min() >= 2.0 - 1e-4 and v.max() <= 20.0 + 1e-4
+    swing = (v.max(1).values - v.min(1).values) / 2  # 200 s is at least 2.5 periods: the amplitude is reached
+    assert torch.allclose(swing, p[:, 1], atol=0.02)
+    assert swing.min() >= 1.0 - 0.02 and swing.max() <= 6.0 + 0.02
+    assert p[:, 2].min() >= 20.0 and p[:, 2].max() <= 80.0 and p[:, 0].std() > 2.0  # periods, centres drawn
+    with pytest.raises(ValueError, match=r"amplitude_max=12.0 are invalid; allowed: .* <= \(v_high - v_low\) / 2"):
+        make_profile("random_sine", v_low=2.0, v_high=20.0, amplitude_max=12.0)
+
+
+def test_random_mix_redraws_its_part_per_episode_and_passes_the_shared_arguments():
+    mix = make_profile("random_mix", v_low=2.0, v_high=20.0, horizon=100.0, weights=(3.0, 1.0),
+                       parts={"random_ramps": {"v_init": 10.0}, "random_sine": {"amplitude_max": 2.0}})
+    ramps, sine = mix.built
+    assert (ramps.v_low, ramps.v_high, ramps.horizon, ramps.v_init) == (2.0, 20.0, 100.0, 10.0)
+    assert (sine.v_low, sine.v_high, sine.amplitude_max) == (2.0, 20.0, 2.0)
+    g = torch.Generator().manual_seed(5)
+    p = mix.sample(4000, g)
+    share = float((p[:, 0] == 0).float().mean())
+    assert share == pytest.approx(0.75, abs=0.03)  # the weights are the odds
+    assert not torch.equal(p[:, 0], mix.sample(4000, g)[:, 0])  # a reset draws the part again
+    v0 = mix.speed(torch.zeros(4000), p)
+    assert torch.all(v0[p[:, 0] == 0] == 10.0)  # a ramps episode starts at its v_init
+    s = p[p[:, 0] == 1][:, 1:5]  # a sine episode follows its own parameters
+    assert torch.allclose(mix.speed(torch.zeros(len(s)), p[p[:, 0] == 1]), s[:, 0] + s[:, 1] * torch.sin(s[:, 3]),
+                          atol=1e-4)
+    with pytest.raises(ValueError, match="part 'warp' is invalid"):
+        make_profile("random_mix", parts={"warp": {}})
+    with pytest.raises(ValueError, match="weights=.* is invalid; allowed: 2 non-negative numbers"):
+        make_profile("random_mix", parts={"random_ramps": {}, "random_sine": {}}, weights=(1.0,))
+
+
+def test_a_bad_mix_part_fails_at_env_build_naming_profile_kwargs_and_the_part_argument():
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import env_kwargs
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_mix"])
+    env = make_env("ring", **env_kwargs(cfg.env))  # the experiment's own mix builds and draws both kinds of head
+    assert env.profile.built[1].v_low == 2.0 and env.profile.built[1].v_high == 20.0
+    with pytest.raises(ValueError, match=r"^profile_kwargs.*amplitude_max=10.0 are invalid; allowed: .*v_low\) / 2"):
+        make_env("ring", profile="random_mix", profile_kwargs={
+            "v_low": 2.0, "v_high": 20.0, "parts": {"random_ramps": {}, "random_sine": {"amplitude_max": 10.0}}})
