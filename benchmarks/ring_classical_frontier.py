@@ -64,13 +64,14 @@ def run(run_cfg, fac, *, episodes: int, seed: int = 2000, names=CASES, profiles_
     from omegaconf import open_dict
     from ring_generalization import named_config
 
+    from mixed_traffic.evaluation import classical_chain
     from mixed_traffic.evaluation.harness import evaluate
 
     out = {}
     for name in names:
         cfg, prof = named_config(run_cfg, name, episodes=episodes, seconds=200.0, seed=seed)
         with open_dict(cfg):
-            cfg.transforms.chain, cfg.eval.without_layer = ["non_negative_reward"], False
+            cfg.transforms.chain, cfg.eval.without_layer = classical_chain(run_cfg.transforms.chain), False
             if profiles_at_seed:
                 cfg.eval.seed = seed
         rep = evaluate(cfg, policy_factory=fac)[0]

@@ -430,6 +430,7 @@ def main(argv=None) -> dict:
     import torch
     from omegaconf import open_dict
 
+    from mixed_traffic.evaluation import classical_chain
     from mixed_traffic.evaluation.harness import evaluate
     from mixed_traffic.evaluation.policies import (
         checkpoint_config,
@@ -481,8 +482,8 @@ def main(argv=None) -> dict:
         plotted = {"policy + layer": tr[prof], "policy, no layer": tr[f"{prof}_without_layer"]}
         for spec in a.baselines:
             base_cfg = case_config(run_cfg, case, **settings)
-            deployed = list(run_cfg.transforms.chain) if spec == ZERO_RESIDUAL else ["non_negative_reward",
-                                                                                      "safety_layer"]
+            deployed = list(run_cfg.transforms.chain) if spec == ZERO_RESIDUAL else \
+                classical_chain(run_cfg.transforms.chain, layer=True)
             with open_dict(base_cfg):
                 base_cfg.transforms.chain = [t for t in deployed if t != "safety_layer"]
             fac = baseline_factory(spec)

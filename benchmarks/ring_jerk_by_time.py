@@ -89,6 +89,7 @@ def main(argv=None) -> dict:
     import torch
     from omegaconf import OmegaConf, open_dict
 
+    from mixed_traffic.evaluation import classical_chain
     from mixed_traffic.evaluation.harness import run_profile
     from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
 
@@ -97,7 +98,7 @@ def main(argv=None) -> dict:
     factory = policy_factory_from_state(cfg, state)
     base_cfg = cfg.copy()
     with open_dict(base_cfg):
-        base_cfg.transforms.chain = ["non_negative_reward"]
+        base_cfg.transforms.chain = classical_chain(cfg.transforms.chain)
     out = {"checkpoint": str(a.checkpoint), "baseline": a.baseline, "profiles": {}}
     traces = {}
     for prof in a.profiles or list(cfg.eval.profiles):

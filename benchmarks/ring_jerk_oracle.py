@@ -81,6 +81,7 @@ def main(argv=None) -> dict:
     from omegaconf import open_dict
     from ring_generalization import cases, named_config
 
+    from mixed_traffic.evaluation import classical_chain
     from mixed_traffic.evaluation.harness import eval_scenario, evaluate, follower_metrics
     from mixed_traffic.evaluation.oracle import least_jerk_of_trace, preview_least_jerk, start_of_trace, steady_mask
     from mixed_traffic.evaluation.policies import checkpoint_config, classic_factory, policy_factory_from_state
@@ -97,7 +98,7 @@ def main(argv=None) -> dict:
         traces = {}
         row = {}
         for label, chain, fac in (("policy + layer", None, factory), ("policy, no layer", "no_layer", factory),
-                                  ("IDM-as-CAV", ["non_negative_reward"], classic_factory("idm"))):
+                                  ("IDM-as-CAV", classical_chain(run_cfg.transforms.chain), classic_factory("idm"))):
             cfg, prof = named_config(run_cfg, name, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
             with open_dict(cfg):
                 cfg.eval.without_layer = False

@@ -593,3 +593,18 @@ def test_the_acceptance_judges_a_partly_steady_profile_on_its_steady_episodes():
     assert steady_rmse_mean(prof([0.1, 1.9, 0.3], [4.0, 0.0, 2.0])) == pytest.approx(0.2)
     assert steady_rmse_mean(prof([0.1, 0.3], [4.0, 2.0])) == pytest.approx(0.2)
     assert steady_rmse_mean(prof([1.9, 1.7], [0.0, 0.0])) is None
+
+
+def test_a_classical_controller_beside_a_policy_runs_under_the_runs_reward_alone():
+    """The reference of mt-main's acceptance and the scorecard's baselines share one rule: the run's reward
+    transforms, in its order, the safety layer only where asked; never the residual, the constraint cost or the
+    training-only shaping."""
+    from mixed_traffic.config import compose
+    from mixed_traffic.evaluation import classical_chain
+
+    chain = list(compose(["experiment=ring_lagrangian_ppo_follow"]).transforms.chain)
+    assert classical_chain(chain) == ["non_negative_reward"]
+    assert classical_chain(chain, layer=True) == ["non_negative_reward", "safety_layer"]
+    other = ["profile_reward", "safety_layer", "residual_nnmpc", "intervention_cost", "jerk_penalty"]
+    assert classical_chain(other) == ["profile_reward"]
+    assert classical_chain(["safety_layer", "residual_idm"]) == []

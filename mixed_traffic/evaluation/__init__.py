@@ -133,6 +133,19 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
     return report
 
 
+def classical_chain(chain, *, layer: bool = False) -> list[str]:
+    """The transforms a classical controller runs under when it stands beside a run's policy: the run's reward
+    transforms (``*_reward``, so that its return is the task's), and its ``safety_layer`` where ``layer``, in the
+    run's order; no residual, no training-only shaping, no constraint cost.
+
+    >>> classical_chain(["onboard_accel", "non_negative_reward", "safety_layer", "residual_idm", "jerk_penalty"])
+    ['non_negative_reward']
+    >>> classical_chain(["non_negative_reward", "safety_layer", "residual_idm"], layer=True)
+    ['non_negative_reward', 'safety_layer']
+    """
+    return [t for t in chain if t.endswith("_reward") or (layer and t == "safety_layer")]
+
+
 def against_reference(cfg: DictConfig, report: dict, name: str, factory, run=evaluate) -> dict:
     """The policy's jerk and return beside those of the classical controller ``name`` (``factory``:
     :func:`~mixed_traffic.evaluation.policies.classic_factory`'s) on the same episodes: ``cfg`` (the policy's evaluated
@@ -141,7 +154,7 @@ def against_reference(cfg: DictConfig, report: dict, name: str, factory, run=eva
     (``"with the layer"``, or ``"policy"`` without a layer in the chain) and without it from the standard start
     (``"without the layer"``) its own, the jerk in % of the reference's and the return's difference."""
     ref_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-    ref_cfg.transforms.chain = [t for t in cfg.transforms.chain if t.endswith("_reward")]
+    ref_cfg.transforms.chain = classical_chain(cfg.transforms.chain)
     ref_cfg.eval.without_layer = False
     ref_rep, _ = run(ref_cfg, policy_factory=factory)
     layered = "with the layer" if "safety_layer" in cfg.transforms.chain else "policy"
@@ -222,5 +235,5 @@ def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoin
     return report
 
 
-__all__ = ["against_reference", "policy_rows", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
+__all__ = ["against_reference", "classical_chain", "policy_rows", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
            "read_scalars", "METRICS"]
