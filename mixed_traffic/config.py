@@ -184,6 +184,8 @@ class JerkPenaltyConfig:
     """Training-only smoothness term ``r -= weight * |a_t - a_{t-1}| / (action range)``."""
 
     weight: float = 1.0
+    weight_after: float | None = None  # the weight from after_seconds of the episode on (null: weight throughout)
+    after_seconds: float = 0.0
 
 
 @dataclass

@@ -99,8 +99,18 @@ def test_jerk_penalty_prices_changes_of_the_executed_acceleration():
     ref = plain.rollout(4, lambda td: td.set("action", next(it)))
     pen = (ref["next", "reward"] - td["next", "reward"])[0, :, 0]
     assert pen.tolist() == pytest.approx([2.0 * 1.0 / 6, 2.0 * 3.0 / 6, 0.0, 2.0 * 2.5 / 6], abs=1e-5)
+    # weight_after prices the steps from after_seconds of the episode on (the ring steps 0.1 s: steps 3 and 4)
+    late = TransformedEnv(make_env("ring", batch_size=2, seed=0),
+                          Compose(NonNegativeReward(), JerkPenalty(weight=2.0, weight_after=8.0, after_seconds=0.3)))
+    it = iter(acts)
+    pen = (ref["next", "reward"] - late.rollout(4, lambda td: td.set("action", next(it)))["next", "reward"])[0, :, 0]
+    assert pen.tolist() == pytest.approx([2.0 * 1.0 / 6, 2.0 * 3.0 / 6, 0.0, 8.0 * 2.5 / 6], abs=1e-5)
     with pytest.raises(ValueError, match="weight="):
         JerkPenalty(weight=-1.0)
+    with pytest.raises(ValueError, match="weight_after=-1.0 is invalid; allowed: null or >= 0"):
+        JerkPenalty(weight_after=-1.0)
+    with pytest.raises(ValueError, match="after_seconds=-2.0 is invalid"):
+        JerkPenalty(after_seconds=-2.0)
 
 
 def test_jerk_limit_bounds_the_change_and_lets_the_layer_brake_at_once():

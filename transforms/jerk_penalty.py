@@ -28,6 +28,10 @@ class JerkPenalty(Transform):
 
     Args:
         weight: penalty weight (>= 0).
+        weight_after: the weight from ``after_seconds`` of the episode on (``None``: ``weight`` throughout); the
+            episode's time is ``time_key`` of the step's result. A start transient's large changes of command then
+            need not dominate what the price teaches about following.
+        after_seconds: when ``weight_after`` takes over (s, >= 0).
         scale: normalisation of the acceleration change (m/s^2, > 0); ``None`` reads the
             action bounds.
         accel_key: executed acceleration entry (default ``("cav", "accel")``).
@@ -46,15 +50,22 @@ class JerkPenalty(Transform):
         [-0.5, 0.0]
     """
 
-    def __init__(self, weight: float = 0.1, scale: float | None = None, *,
-                 accel_key: NestedKey = ("cav", "accel"), reward_key: NestedKey = "reward"):
+    def __init__(self, weight: float = 0.1, scale: float | None = None, *, weight_after: float | None = None,
+                 after_seconds: float = 0.0, accel_key: NestedKey = ("cav", "accel"), reward_key: NestedKey = "reward",
+                 time_key: NestedKey = ("traffic", "time")):
         if not weight >= 0:
             raise ValueError(f"JerkPenalty: weight={weight!r} is invalid; allowed: >= 0")
         if scale is not None and not scale > 0:
             raise ValueError(f"JerkPenalty: scale={scale!r} is invalid; allowed: > 0 (m/s^2) or None")
+        if weight_after is not None and not weight_after >= 0:
+            raise ValueError(f"JerkPenalty: weight_after={weight_after!r} is invalid; allowed: null or >= 0")
+        if not after_seconds >= 0:
+            raise ValueError(f"JerkPenalty: after_seconds={after_seconds!r} is invalid; allowed: >= 0 (s)")
         super().__init__(in_keys=[accel_key, reward_key], out_keys=[reward_key])
         self.weight, self._scale = float(weight), scale
-        self.accel_key, self.reward_key = accel_key, reward_key
+        self.weight_after = None if weight_after is None else float(weight_after)
+        self.after_seconds = float(after_seconds)
+        self.accel_key, self.reward_key, self.time_key = accel_key, reward_key, time_key
 
     @property
     def scale(self) -> float:
@@ -68,12 +79,17 @@ class JerkPenalty(Transform):
         reward = next_tensordict.get(self.reward_key)
         if prev is None:
             prev = torch.zeros_like(now)
-        pen = ((now - prev).abs() / self.scale).sum(-1, keepdim=True)
-        next_tensordict.set(self.reward_key, reward - self.weight * pen.to(reward.dtype).reshape(reward.shape))
+        pen = ((now - prev).abs() / self.scale).sum(-1, keepdim=True).to(reward.dtype).reshape(reward.shape)
+        weight = self.weight
+        if self.weight_after is not None:  # the episode's time decides which weight prices the step
+            late = next_tensordict.get(self.time_key).reshape(reward.shape) >= self.after_seconds
+            weight = torch.where(late, torch.full_like(pen, self.weight_after), torch.full_like(pen, self.weight))
+        next_tensordict.set(self.reward_key, reward - weight * pen)
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError("JerkPenalty reads the state before and after a step; use it inside an env")
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(weight={self.weight})"
+        after = "" if self.weight_after is None else f", weight_after={self.weight_after}, after_seconds={self.after_seconds}"
+        return f"{type(self).__name__}(weight={self.weight}{after})"

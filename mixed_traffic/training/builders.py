@@ -124,7 +124,8 @@ def _intervention_cost(tcfg, env):
 def _jerk_penalty(tcfg, env):
     from transforms import JerkPenalty
 
-    return JerkPenalty(weight=tcfg.jerk_penalty.weight)
+    j = tcfg.jerk_penalty
+    return JerkPenalty(weight=j.weight, weight_after=j.get("weight_after"), after_seconds=j.get("after_seconds", 0.0))
 
 
 def _jerk_limit(tcfg, env):
