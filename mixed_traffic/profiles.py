@@ -321,9 +321,9 @@ class RandomMix:
             raise ValueError(f"random_mix: parts={self.parts!r} is invalid; allowed: a mapping of one or more "
                              f"profile names to their arguments")
         for name in self.parts:
-            if name not in PROFILES or name in ("random_mix", "piecewise"):
+            if name not in PROFILES or name == "random_mix":
                 raise ValueError(f"random_mix: part {name!r} is invalid; allowed: "
-                                 f"{sorted(set(PROFILES) - {'random_mix', 'piecewise'})}")
+                                 f"{sorted(set(PROFILES) - {'random_mix'})}")
         if self.weights is not None and (len(self.weights) != len(self.parts) or any(w < 0 for w in self.weights)
                                          or sum(self.weights) <= 0):
             raise ValueError(f"random_mix: weights={self.weights!r} is invalid; allowed: {len(self.parts)} "
@@ -359,13 +359,7 @@ class RandomMix:
         return out
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
-        which = params[..., 0].long()
-        out = torch.empty_like(t)
-        for j, (part, k) in enumerate(zip(self.built, self.widths)):
-            m = which == j
-            if bool(m.any()):
-                out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
-        return out
+        return _speed_by_part(self.built, self.widths, t, params)
 
 
 @dataclass(frozen=True)
@@ -431,13 +425,19 @@ class RowProfiles:
         return self.sample_rows(torch.arange(batch), generator)
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
-        which = params[:, 0].long()
-        out = torch.empty_like(t)
-        for j, (part, k) in enumerate(zip(self.parts, self.widths)):
-            m = which == j
-            if bool(m.any()):
-                out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
-        return out
+        return _speed_by_part(self.parts, self.widths, t, params)
+
+
+def _speed_by_part(parts, widths, t: Tensor, params: Tensor) -> Tensor:
+    """The speed of rows whose parameters are ``[part index, the part's parameters...]`` (:class:`RandomMix`,
+    :class:`RowProfiles`): each row through its own part."""
+    which = params[..., 0].long()
+    out = torch.empty_like(t)
+    for j, (part, k) in enumerate(zip(parts, widths)):
+        m = which == j
+        if bool(m.any()):
+            out[m] = part.speed(t[m], params[m, 1:1 + k]).to(t.dtype)
+    return out
 
 
 def deeplcc_brake(start: float = 0.0, v0: float = 15.0) -> PiecewiseLinear:
