@@ -51,13 +51,14 @@ def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, second
     return todo
 
 
-def classical_for(run: str, asked: list[str] | None) -> list[str]:
+def classical_for(run: str, asked: list[str] | None, *, cfg=None) -> list[str]:
     """The classical controllers to run beside ``run``: ``asked``, or by default :data:`CLASSICAL` less
     ``zero_residual`` where the run has no learned residual (a policy that drives alone); ``base`` or
-    ``zero_residual`` asked for such a run fails here."""
+    ``zero_residual`` asked for such a run fails here. ``cfg``: the run's checkpoint config, where already read."""
     from mixed_traffic.evaluation.policies import checkpoint_config
 
-    has_residual = "residual_idm" in checkpoint_config(run)[0].transforms.chain
+    cfg = checkpoint_config(run)[0] if cfg is None else cfg
+    has_residual = "residual_idm" in cfg.transforms.chain
     if asked is None:
         return [c for c in CLASSICAL if c != "zero_residual" or has_residual]
     wrong = [c for c in asked if c in ("base", "zero_residual")]
@@ -68,16 +69,16 @@ def classical_for(run: str, asked: list[str] | None) -> list[str]:
     return list(asked)
 
 
-def kinds_of_cases(run: str, groups: list[str], seconds: float) -> tuple[dict[str, tuple[str, ...]], str]:
+def kinds_of_cases(run_cfg, groups: list[str], seconds: float) -> tuple[dict[str, tuple[str, ...]], str]:
     """``(case -> its kinds of head, the kind of the heads above the training speeds)``: ``ring_generalization``'s
-    ``case_kinds`` at each case's group's evaluation seed, against the top speed of ``run``'s training profile, and
-    its ``KINDS`` entry for those heads; ``{}`` for the first where that profile has no top speed."""
+    ``case_kinds`` at each case's group's evaluation seed, against the top speed of the training profile of the run
+    whose checkpoint config is ``run_cfg``, and its ``KINDS`` entry for those heads; ``{}`` for the first where that
+    profile has no top speed."""
     import importlib.util
 
-    from mixed_traffic.evaluation.policies import checkpoint_config
     from mixed_traffic.profiles import make_profile
 
-    env = checkpoint_config(run)[0].env
+    env = run_cfg.env
     v_train = getattr(make_profile(env.profile, **(env.profile_kwargs or {})), "v_high", None)
     spec = importlib.util.spec_from_file_location("ring_generalization", Path(__file__).with_name("ring_generalization.py"))
     gen = importlib.util.module_from_spec(spec)
@@ -115,7 +116,10 @@ def main(argv=None) -> str:
         raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
     if a.jobs < 1:
         raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
-    a.classical = classical_for(a.runs[0], a.classical)
+    from mixed_traffic.evaluation.policies import checkpoint_config
+
+    first_cfg = checkpoint_config(a.runs[0])[0]  # read once: the classical controllers and the kinds of head need it
+    a.classical = classical_for(a.runs[0], a.classical, cfg=first_cfg)
     from mixed_traffic.evaluation.results import (
         beaten_line,
         generalization_table,
@@ -172,7 +176,7 @@ def main(argv=None) -> str:
     beaten = [f"{e['case']} ({', '.join(e['classical_clean'])})" for m in margins.values() for e in m
               if not e["clean"] and e["classical_clean"]]
     residual = residual_line([e for m in margins.values() for e in m])
-    kinds, above = kinds_of_cases(a.runs[0], a.groups, a.seconds)
+    kinds, above = kinds_of_cases(first_cfg, a.groups, a.seconds)
     by_kind = (["By the kind of head (those the acceptance names; a case may be of several kinds, or of none): the cases "
                 "that meet every bar, the policy's on every run, each classical controller's without a layer on the "
                 "same episodes.", "", kinds_table([e for m in margins.values() for e in m], kinds,

@@ -335,9 +335,8 @@ class RandomMix:
         out = []
         for name, kwargs in self.parts.items():
             kwargs = dict(kwargs or {})
-            takes = getattr(PROFILES[name], "__dataclass_fields__", {})
             for arg in ("v_low", "v_high", "v_init", "horizon"):
-                if getattr(self, arg) is not None and arg in takes:
+                if getattr(self, arg) is not None and takes_argument(name, arg):
                     kwargs.setdefault(arg, getattr(self, arg))
             out.append(make_profile(name, **kwargs))
         return tuple(out)
@@ -350,13 +349,9 @@ class RandomMix:
         w = torch.tensor(self.weights if self.weights is not None else [1.0] * len(self.parts), dtype=torch.float64)
         which = torch.multinomial(w / w.sum(), batch, replacement=True, generator=generator) if batch else \
             torch.zeros(0, dtype=torch.long)
-        out = torch.zeros(batch, 1 + max(self.widths))
-        out[:, 0] = which.float()
-        for j, part in enumerate(self.built):  # every part draws for the whole batch: a row's draw is its own
-            d = part.sample(batch, generator).float()
-            m = which == j
-            out[m, 1:1 + d.shape[-1]] = d[m]
-        return out
+        # every part draws for the whole batch: a row's draw does not depend on the other rows' parts
+        drawn = [part.sample(batch, generator)[which == j] for j, part in enumerate(self.built)]
+        return _pack_by_part(which, drawn, self.widths)
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
         return _speed_by_part(self.built, self.widths, t, params)
@@ -415,17 +410,24 @@ class RowProfiles:
         rows = torch.as_tensor(rows, dtype=torch.long).reshape(-1)
         which = rows % len(self.parts)
         drawn = [part.sample(int((which == j).sum()), generator) for j, part in enumerate(self.parts)]
-        out = torch.zeros(rows.numel(), 1 + max(self.widths))
-        out[:, 0] = which.float()
-        for j, d in enumerate(drawn):
-            out[which == j, 1:1 + d.shape[-1]] = d.float()
-        return out
+        return _pack_by_part(which, drawn, self.widths)
 
     def sample(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
         return self.sample_rows(torch.arange(batch), generator)
 
     def speed(self, t: Tensor, params: Tensor) -> Tensor:
         return _speed_by_part(self.parts, self.widths, t, params)
+
+
+def _pack_by_part(which: Tensor, drawn: list[Tensor], widths) -> Tensor:
+    """Part-indexed parameters (:class:`RandomMix`, :class:`RowProfiles`): row ``i`` is ``[which[i], its part's
+    parameters...]``, padded to the widest part; ``drawn[j]`` holds, in row order, the parameters of the rows of part
+    ``j``."""
+    out = torch.zeros(which.numel(), 1 + max(widths))
+    out[:, 0] = which.float()
+    for j, d in enumerate(drawn):
+        out[which == j, 1:1 + d.shape[-1]] = d.float()
+    return out
 
 
 def _speed_by_part(parts, widths, t: Tensor, params: Tensor) -> Tensor:
@@ -491,6 +493,11 @@ PROFILES = {
 }
 
 
+def takes_argument(name: str, arg: str) -> bool:
+    """Whether the profile ``name`` of :data:`PROFILES` has the argument ``arg`` (a field of its dataclass)."""
+    return arg in getattr(PROFILES[name], "__dataclass_fields__", {})
+
+
 def make_profile(name: str, **kwargs):
     """Build a profile by name; unknown names or fields raise a ValueError naming them."""
     if name not in PROFILES:
@@ -506,4 +513,4 @@ def make_profile(name: str, **kwargs):
 
 __all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomStopAndGo", "RandomPerturbation", "Sine",
            "RandomSine", "RandomMix",
-           "PiecewiseLinear", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]
+           "PiecewiseLinear", "takes_argument", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 
 from mixed_traffic.physics import IDMParams, OVMParams, ovm_equilibrium_gap
-from mixed_traffic.profiles import PROFILES, make_profile
+from mixed_traffic.profiles import PROFILES, make_profile, takes_argument
 from mixed_traffic.validation import ConfigError, Real, is_real
 
 # the policy inputs a scenario can give (``TrafficScenario.observation``); the ones built around a head
@@ -189,8 +189,7 @@ class TrafficScenario:
 
     def make_profile(self):
         kwargs = dict(self.profile_kwargs)
-        if self.profile in ("random_steps", "random_perturbation", "random_ramps", "random_stop_and_go", "random_sine",
-                            "random_mix"):
+        if self.profile in PROFILES and takes_argument(self.profile, "horizon"):  # the drawn profiles' knots
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)
 
