@@ -508,7 +508,9 @@ def make_profile(name: str, **kwargs):
     except TypeError as e:
         allowed = [f.name for f in fields(factory)] if hasattr(factory, "__dataclass_fields__") else \
             list(factory.__code__.co_varnames[: factory.__code__.co_argcount])
-        raise ValueError(f"profile {name!r}: bad arguments {sorted(kwargs)}; allowed: {allowed}") from e
+        unknown = sorted(k for k in kwargs if k not in allowed)
+        what = f"unknown arguments {unknown}" if unknown else f"bad arguments {sorted(kwargs)} ({e})"
+        raise ValueError(f"profile {name!r}: {what}; allowed: {allowed}") from e
 
 
 __all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomStopAndGo", "RandomPerturbation", "Sine",

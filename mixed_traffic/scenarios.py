@@ -188,7 +188,12 @@ class TrafficScenario:
         return (p.s0 + v * p.T) / math.sqrt(max(1e-6, 1.0 - (v / p.v0) ** p.delta))
 
     def make_profile(self):
-        kwargs = dict(self.profile_kwargs)
+        """The head's profile from ``profile`` and ``profile_kwargs``. An argument set to None that the profile does
+        not have is left out (None means unset, as in ``random_mix``'s shared arguments), so an experiment's
+        ``v_init: null`` does not stop ``env.profile=random_sine`` from the command line."""
+        fields_ = getattr(PROFILES.get(self.profile), "__dataclass_fields__", None)
+        kwargs = {k: v for k, v in dict(self.profile_kwargs).items()
+                  if not (v is None and fields_ is not None and k not in fields_)}
         if self.profile in PROFILES and takes_argument(self.profile, "horizon"):  # the drawn profiles' knots
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)

@@ -52,8 +52,11 @@ def test_sine_and_eudc_ranges():
 def test_bad_profile_names_and_arguments():
     with pytest.raises(ValueError, match="unknown name 'warp'"):
         make_profile("warp")
-    with pytest.raises(ValueError, match="bad arguments"):
+    with pytest.raises(ValueError, match=r"unknown arguments \['amplitud'\]"):
         make_profile("sine", amplitud=3.0)
+    # only the unknown one is named, not the valid arguments given beside it
+    with pytest.raises(ValueError, match=r"unknown arguments \['v_init'\]; allowed: \['v_low'"):
+        make_profile("random_sine", v_low=2.0, v_high=20.0, v_init=None)
 
 
 def test_random_sine_stays_in_range_and_draws_every_part_per_episode():
@@ -104,3 +107,18 @@ def test_a_bad_mix_part_fails_at_env_build_naming_profile_kwargs_and_the_part_ar
     with pytest.raises(ValueError, match=r"^profile_kwargs.*amplitude_max=10.0 are invalid; allowed: .*v_low\) / 2"):
         make_env("ring", profile="random_mix", profile_kwargs={
             "v_low": 2.0, "v_high": 20.0, "parts": {"random_ramps": {}, "random_sine": {"amplitude_max": 10.0}}})
+
+
+def test_a_profile_switched_on_the_command_line_ignores_an_unset_argument_it_lacks():
+    """The default's ``profile_kwargs`` hold ``v_init: null`` (for random_ramps); ``env.profile=random_sine`` still
+    builds, while an argument the profile lacks that is set still fails, naming it."""
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import env_kwargs
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_follow", "env.profile=random_sine"])
+    assert cfg.env.profile_kwargs.v_init is None
+    env = make_env("ring", **env_kwargs(cfg.env))
+    assert (env.profile.v_low, env.profile.v_high) == (2.0, 20.0)
+    with pytest.raises(ValueError, match=r"^profile_kwargs.*unknown arguments \['v_init'\]"):
+        make_env("ring", profile="random_sine", profile_kwargs={"v_low": 2.0, "v_high": 20.0, "v_init": 10.0})
