@@ -20,6 +20,7 @@ harness, so a profile means the same thing everywhere.
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 from dataclasses import dataclass, field, fields
 
@@ -493,9 +494,18 @@ PROFILES = {
 }
 
 
+def profile_arguments(name: str) -> list[str]:
+    """The arguments of the profile ``name`` of :data:`PROFILES`: its dataclass's fields, or its function's
+    parameters."""
+    factory = PROFILES[name]
+    if hasattr(factory, "__dataclass_fields__"):
+        return [f.name for f in fields(factory)]
+    return list(inspect.signature(factory).parameters)
+
+
 def takes_argument(name: str, arg: str) -> bool:
-    """Whether the profile ``name`` of :data:`PROFILES` has the argument ``arg`` (a field of its dataclass)."""
-    return arg in getattr(PROFILES[name], "__dataclass_fields__", {})
+    """Whether the profile ``name`` of :data:`PROFILES` has the argument ``arg``."""
+    return arg in profile_arguments(name)
 
 
 def make_profile(name: str, **kwargs):
@@ -506,8 +516,7 @@ def make_profile(name: str, **kwargs):
     try:
         return factory(**kwargs)
     except TypeError as e:
-        allowed = [f.name for f in fields(factory)] if hasattr(factory, "__dataclass_fields__") else \
-            list(factory.__code__.co_varnames[: factory.__code__.co_argcount])
+        allowed = profile_arguments(name)
         unknown = sorted(k for k in kwargs if k not in allowed)
         what = f"unknown arguments {unknown}" if unknown else f"bad arguments {sorted(kwargs)} ({e})"
         raise ValueError(f"profile {name!r}: {what}; allowed: {allowed}") from e
@@ -515,4 +524,4 @@ def make_profile(name: str, **kwargs):
 
 __all__ = ["make_profile", "PROFILES", "Constant", "RandomSteps", "RandomRamps", "RandomStopAndGo", "RandomPerturbation", "Sine",
            "RandomSine", "RandomMix",
-           "PiecewiseLinear", "takes_argument", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]
+           "PiecewiseLinear", "profile_arguments", "takes_argument", "RowProfiles", "deeplcc_brake", "emergency_brake", "eudc", "nedc", "field"]

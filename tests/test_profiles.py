@@ -120,5 +120,17 @@ def test_a_profile_switched_on_the_command_line_ignores_an_unset_argument_it_lac
     assert cfg.env.profile_kwargs.v_init is None
     env = make_env("ring", **env_kwargs(cfg.env))
     assert (env.profile.v_low, env.profile.v_high) == (2.0, 20.0)
+    # a profile that is a function (its parameters are its arguments) too: the EUDC shape within 2-20 m/s
+    cfg = compose(["experiment=ring_lagrangian_ppo_follow", "env.profile=eudc"])
+    v = torch.tensor(speeds(make_env("ring", **env_kwargs(cfg.env)).profile, list(range(0, 400, 2))))
+    assert v.min() == pytest.approx(2.0) and v.max() == pytest.approx(20.0)
     with pytest.raises(ValueError, match=r"^profile_kwargs.*unknown arguments \['v_init'\]"):
         make_env("ring", profile="random_sine", profile_kwargs={"v_low": 2.0, "v_high": 20.0, "v_init": 10.0})
+
+
+def test_random_mix_passes_its_shared_speeds_to_a_function_part_that_takes_them():
+    mix = make_profile("random_mix", v_low=3.0, v_high=12.0, parts={"eudc": {}, "emergency_brake": {"v_cruise": 10.0}})
+    eudc, brake = mix.built
+    v = torch.tensor(speeds(eudc, list(range(0, 400, 2))))
+    assert v.min() == pytest.approx(3.0) and v.max() == pytest.approx(12.0)
+    assert min(speeds(brake, list(range(0, 120)))) == pytest.approx(3.0)  # its v_low, the mix's
