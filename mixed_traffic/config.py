@@ -42,7 +42,9 @@ class EnvConfig:
     preset's value. Any other scenario field goes in ``overrides`` (validated by
     :func:`mixed_traffic.scenarios.get_scenario`, which names unknown fields):
     ``env.overrides.ring_length=230`` works as is (no ``+`` needed: ``overrides`` is the
-    one open node of the config; a misspelt field name fails when the env is built).
+    one open node of the config; a misspelt field name fails when the env is built). The apps
+    pass ``env.profile_kwargs.<arg>=v`` as ``++...`` too, so a profile's argument the experiment
+    does not set (``random_mix``'s ``weights``) needs no ``+`` either; the profile names a misspelt one.
     ``num_envs`` lives in the trainer (rows stepped together).
     """
 

@@ -497,8 +497,9 @@ def check_argv(argv: list[str]) -> list[str]:
 
     - ``experiment=<name>`` must name a file of ``hydra_configs/experiment`` (a misspelt
       name would otherwise fall back to the defaults).
-    - ``env.overrides.<field>=v`` is a new key of a free-form dict: it is passed to Hydra as
-      ``++env.overrides.<field>=v`` so no ``+`` is needed.
+    - ``env.overrides.<field>=v`` and ``env.profile_kwargs.<arg>=v`` may be new keys of free-form dicts
+      (a scenario field, a profile's argument, e.g. ``random_mix``'s ``weights``): they are passed to Hydra as
+      ``++...`` so no ``+`` is needed. A misspelt name still fails at start-up, when the env is built, naming it.
     """
     out = []
     names = None
@@ -509,7 +510,7 @@ def check_argv(argv: list[str]) -> list[str]:
             for v in value.split(","):  # a sweep over experiments
                 if v not in names:
                     raise ConfigError("experiment", f"unknown name {v!r}", str(names))
-        if eq and key.startswith("env.overrides.") and not key.startswith("+"):
+        if eq and key.startswith(("env.overrides.", "env.profile_kwargs.")) and not key.startswith("+"):
             a = "++" + a
         out.append(a)
     return out

@@ -24,6 +24,7 @@ from mixed_traffic import make_env
 from mixed_traffic.config import compose
 from mixed_traffic.training import check_config, train
 from mixed_traffic.training import checkpoint as ck
+from mixed_traffic.training.builders import env_kwargs
 from mixed_traffic.validation import CONFIG_RULES, ConfigError, Real, check_argv, validate_config
 
 TINY = ["experiment=ring_ppo", "trainer.total_frames=32", "trainer.num_envs=8", "trainer.rollout_len=4",
@@ -421,6 +422,13 @@ def test_10_hydra_errors_exit_2_and_overrides_need_no_plus(tmp_path):
         "++env.overrides.v_init=3.0", "+env.overrides.x=1"]
     cfg = compose([*TINY, *check_argv(["env.overrides.v_init=3.0"])])
     assert cfg.env.overrides.v_init == 3.0
+    # a profile's argument the experiment does not set (random_mix's weights) needs no "+" either; a misspelt one
+    # fails when the env is built, naming it
+    cfg = compose(["experiment=ring_lagrangian_ppo_mix", *check_argv(["env.profile_kwargs.weights=[1.0,3.0]"])])
+    assert make_env("ring", **env_kwargs(cfg.env)).profile.weights == [1.0, 3.0]
+    cfg = compose(["experiment=ring_lagrangian_ppo_mix", *check_argv(["env.profile_kwargs.weigths=[1.0,3.0]"])])
+    with pytest.raises(ValueError, match=r"unknown arguments \['weigths'\]"):
+        make_env("ring", **env_kwargs(cfg.env))
     out = _cli("mt-train", "loss.clip_epsilom=0.2", cwd=tmp_path)
     assert out.returncode == 2 and "clip_epsilom" in out.stderr
 
