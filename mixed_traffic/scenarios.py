@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 
 from mixed_traffic.physics import IDMParams, OVMParams, ovm_equilibrium_gap
-from mixed_traffic.profiles import PROFILES, make_profile, profile_arguments, takes_argument
+from mixed_traffic.profiles import PROFILES, make_profile, profile_arguments
 from mixed_traffic.validation import ConfigError, Real, is_real
 
 # the policy inputs a scenario can give (``TrafficScenario.observation``); the ones built around a head
@@ -194,7 +194,7 @@ class TrafficScenario:
         known = profile_arguments(self.profile) if self.profile in PROFILES else None
         kwargs = {k: v for k, v in dict(self.profile_kwargs).items()
                   if not (v is None and known is not None and k not in known)}
-        if self.profile in PROFILES and takes_argument(self.profile, "horizon"):  # the drawn profiles' knots
+        if known is not None and "horizon" in known:  # the drawn profiles' knots
             kwargs.setdefault("horizon", self.episode_seconds)
         return make_profile(self.profile, **kwargs)
 
