@@ -248,6 +248,9 @@ class DriveOffConfig:
     ``follow`` (share, in (0, 1.5], or null): while the cap is engaged and the leader accelerates by more than
     ``follow_above`` (m/s^2), the command is at least ``min(follow * a_leader, cap)``: the CAV keeps up with a long
     drive-off from its start; null (the default): off.
+    ``hold`` (bool): while the leader stands (below ``standstill``), the overspeed allowance grows from 0 with its
+    speed, so the CAV stands behind a stopped leader instead of creeping toward it (``DriveOffCap(hold=True)``);
+    false (the default): the allowance throughout.
     """
 
     gain: float | None = None  # 1/s; null: off
@@ -261,6 +264,7 @@ class DriveOffConfig:
     residual_play_release: float | None = None  # s: the backlash's width shrinks to 0 over this after the release
     follow: float | None = None  # share of the leader's acceleration kept as a floor while engaged; null: off
     follow_above: float = 0.3  # m/s^2: the leader's acceleration above which that floor holds
+    hold: bool = False  # the CAV stands while its leader stands (no overspeed allowance behind a stopped leader)
 
 
 @dataclass

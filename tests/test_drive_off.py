@@ -413,3 +413,33 @@ def test_the_follow_floor_never_pushes_past_the_stopping_rule():
     cfg = validate_config(compose(["experiment=ring_lagrangian_ppo_residual_play", "transforms.residual.drive_off.follow=0.9"]))
     cap = next(t for t in make_transformed_env(cfg, num_envs=1, seed=0, deploy=True).transform if isinstance(t, DriveOffCap))
     assert cap.guard[:2] == (5.0, 3.0)  # the base's stop_gap and the CAV's braking bound
+
+
+def test_with_hold_the_cav_stands_while_its_leader_stands():
+    """Behind a stopped leader the cap without ``hold`` lets a command creep the CAV toward it at ``gain *
+    overspeed``; with ``hold`` the cap there is ``-gain v``, so the same command is held at 0. Once the leader
+    drives at ``standstill`` or faster, both caps are the same."""
+    zero, stopped = torch.zeros(2), torch.zeros(2, dtype=torch.bool)
+    push = torch.full((2,), 0.4)  # a base plus residual that would creep forward
+    gap, v, v_l = torch.tensor([6.0, 6.0]), torch.tensor([0.0, 0.2]), zero
+    creep, _, _ = DriveOffCap(overspeed=0.15).apply(push, gap, v, v_l, stopped, zero)
+    held, engaged, _ = DriveOffCap(overspeed=0.15, hold=True).apply(push, gap, v, v_l, stopped, zero)
+    assert bool(engaged.all())
+    torch.testing.assert_close(creep, torch.tensor([0.15, -0.05]))
+    torch.testing.assert_close(held, torch.tensor([0.0, -0.2]))
+    moving = torch.tensor([0.5, 3.0])  # the leader drives off
+    for cap in (DriveOffCap(overspeed=0.15), DriveOffCap(overspeed=0.15, hold=True)):
+        c, _ = cap.cap(gap, v, moving)
+        torch.testing.assert_close(c, moving + 0.15 - v)
+    c, _ = DriveOffCap(overspeed=0.15, hold=True).cap(gap, zero, torch.tensor([0.25, 0.1]))  # half, a fifth of 0.5
+    torch.testing.assert_close(c, torch.tensor([0.25 + 0.075, 0.1 + 0.03]))
+
+
+def test_hold_reaches_the_transform_from_the_config():
+    """``transforms.residual.drive_off.hold=true`` builds the cap with ``hold``; the default builds it without."""
+    from mixed_traffic.training.builders import drive_off_cap
+
+    env = make_env("ring", batch_size=1, seed=0, **STOP)
+    held = compose(["experiment=ring_lagrangian_ppo_follow", "transforms.residual.drive_off.hold=true"])
+    assert drive_off_cap(held.transforms.residual, env).hold is True
+    assert drive_off_cap(compose(["experiment=ring_lagrangian_ppo_follow"]).transforms.residual, env).hold is False

@@ -59,6 +59,9 @@ class DriveOffCap(Transform):
         follow_above: the leader's acceleration (m/s^2, >= 0) above which the floor holds.
         guard: ``(stop_gap, brake, leader_brake)`` (m, m/s^2, m/s^2): the floor stays within the stopping rule that
             keeps ``stop_gap`` whatever the leader does within ``leader_brake``; None: unguarded.
+        hold: while the leader stands, the CAV stands too: ``overspeed`` grows from 0 with the leader's speed up to
+            ``standstill`` (where it is whole), so the cap behind a stopped leader is ``-gain v`` and a command that
+            would creep toward it is held at 0 (False: ``overspeed`` throughout, as before).
         action_key: the executed acceleration (default ``"action"``).
 
     Example:
@@ -81,7 +84,7 @@ class DriveOffCap(Transform):
     def __init__(self, gain: float = 1.0, overspeed: float = 0.15, gaps: tuple[float, float] = (34.0, 38.0),
                  accel: float = 1.5, release: float = 5.0, standstill: float = 0.5, match: float = 0.3, *,
                  dt: float = 0.1, follow: float | None = None, follow_above: float = 0.3, guard=None,
-                 action_key: NestedKey = "action"):
+                 hold: bool = False, action_key: NestedKey = "action"):
         for name, value in (("gain", gain), ("accel", accel), ("release", release), ("standstill", standstill),
                             ("match", match), ("dt", dt)):
             if not float(value) > 0.0:
@@ -104,12 +107,16 @@ class DriveOffCap(Transform):
             raise ValueError(f"DriveOffCap: guard={guard!r} is invalid; allowed: None or (stop_gap >= 0, brake > 0, "
                              "leader_brake > 0)")
         self.guard = None if guard is None else (float(guard[0]), float(guard[1]), guard[2])
+        self.hold = bool(hold)
         self.action_key = action_key
 
     def cap(self, gap: torch.Tensor, speed: torch.Tensor,
             leader_speed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(cap, lift)``: the cap (m/s^2) where it holds in full, and how far it is lifted (0: not at all, 1: gone)."""
-        cap = self.gain * (leader_speed + self.overspeed - speed)
+        overspeed = self.overspeed
+        if self.hold:  # none of the allowance while the leader stands: the CAV does not creep toward it
+            overspeed = overspeed * (leader_speed / self.standstill).clamp(0.0, 1.0)
+        cap = self.gain * (leader_speed + overspeed - speed)
         deficit = (leader_speed - speed).clamp_min(0.0)
         projected = gap + deficit * deficit / (2.0 * self.accel)
         lift = ((projected - self.gaps[0]) / (self.gaps[1] - self.gaps[0])).clamp(0.0, 1.0)
@@ -195,5 +202,6 @@ class DriveOffCap(Transform):
 
     def __repr__(self) -> str:
         follow = "" if self.follow is None else f", follow={self.follow} above {self.follow_above}"
+        follow += ", hold" if self.hold else ""
         return (f"{type(self).__name__}(gain={self.gain}, overspeed={self.overspeed}, gaps={self.gaps}, "
                 f"accel={self.accel}, release={self.release}, standstill={self.standstill}{follow})")

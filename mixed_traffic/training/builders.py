@@ -242,7 +242,7 @@ def drive_off_cap(rcfg, env):
                  scenario_leader_brake(env.scenario))
     return DriveOffCap(gain=d.gain, overspeed=d.overspeed, gaps=tuple(d.gaps), accel=d.accel, release=d.release,
                        standstill=d.standstill, dt=float(env.scenario.dt), follow=d.get("follow"),
-                       follow_above=d.get("follow_above", 0.3), guard=guard)
+                       follow_above=d.get("follow_above", 0.3), guard=guard, hold=bool(d.get("hold", False)))
 
 
 def join_blend(rcfg, env, *, deploy: bool = True):
