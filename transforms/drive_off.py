@@ -202,6 +202,6 @@ class DriveOffCap(Transform):
 
     def __repr__(self) -> str:
         follow = "" if self.follow is None else f", follow={self.follow} above {self.follow_above}"
-        follow += ", hold" if self.hold else ""
+        hold = ", hold" if self.hold else ""
         return (f"{type(self).__name__}(gain={self.gain}, overspeed={self.overspeed}, gaps={self.gaps}, "
-                f"accel={self.accel}, release={self.release}, standstill={self.standstill}{follow})")
+                f"accel={self.accel}, release={self.release}, standstill={self.standstill}{follow}{hold})")
