@@ -104,6 +104,21 @@ allows, seven of them within the training speeds, where the earlier groups' miss
 - ``brake_from_15_late``: ``emergency_brake`` from 15 m/s down to 0 m/s at 100 s;
 - ``sine_22_p35``: ``sine`` at 22 +- 2 m/s, period 35 s, above the training range.
 
+Nine more (``--cases fresh_7``), fixed after the screens of the stopping envelope's arrival term
+(``transforms.residual.arrive_gain``) and before anything ran on them; seven within the training speeds, one that
+brakes to a standstill, one with stops, one above the training speeds:
+
+- ``sine_14_p50``: ``sine`` at 14 +- 4 m/s, period 50 s;
+- ``sine_6_p20``: ``sine`` at 6 +- 2 m/s, period 20 s;
+- ``ramps_5_17_humans_25pct``: ``random_ramps`` at 5-17 m/s with the humans' parameters spread +-25 %;
+- ``ramps_2_12_ring_220``: ``random_ramps`` at 2-12 m/s on a 220 m ring;
+- ``perturbation_9``: ``random_perturbation`` around 9 m/s, +-2.5 m/s knots every 6 s;
+- ``steps_4_16``: ``random_steps`` at 4-16 m/s, period 22 s;
+- ``random_stops_short``: ``random_stop_and_go`` with holds of 6-15 s at 6-15 m/s, stands of 2-8 s, braking and
+  driving off at 1.5-2.5 m/s^2;
+- ``brake_from_11``: ``emergency_brake`` from 11 m/s down to 0 m/s at 70 s;
+- ``steps_20_26``: ``random_steps`` at 20-26 m/s, period 20 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -254,6 +269,23 @@ def cases(seconds: float) -> dict[str, dict]:
             "rate_min": 1.2, "rate_max": 2.2}},
         "brake_from_15_late": {"profile": "emergency_brake", "kwargs": {"start": 100.0, "v_cruise": 15.0, "v_low": 0.0}},
         "sine_22_p35": {"profile": "sine", "kwargs": {"v_star": 22.0, "amplitude": 2.0, "period": 35.0}},
+        # fresh_7: fixed after the screens of the envelope's arrival term (docs/results.md, "An arrival term at the
+        # stopping envelope"), before anything ran on them
+        "sine_14_p50": {"profile": "sine", "kwargs": {"v_star": 14.0, "amplitude": 4.0, "period": 50.0}},
+        "sine_6_p20": {"profile": "sine", "kwargs": {"v_star": 6.0, "amplitude": 2.0, "period": 20.0}},
+        "ramps_5_17_humans_25pct": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 17.0},
+                                    "eval": {"hdv_param_noise": 0.25}},
+        "ramps_2_12_ring_220": {"profile": "random_ramps", "kwargs": {"v_low": 2.0, "v_high": 12.0},
+                                "env": {"ring_length": 220.0}},
+        "perturbation_9": {"profile": "random_perturbation", "kwargs": {"v_star": 9.0, "amplitude": 2.5, "period": 6.0}},
+        "steps_4_16": {"profile": "random_steps", "kwargs": {"v_low": 4.0, "v_high": 16.0, "period": 22.0,
+                                                             "v_init": 8.0}},
+        "random_stops_short": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 6.0, "v_high": 15.0, "hold_min": 6.0, "hold_max": 15.0, "stop_min": 2.0, "stop_max": 8.0,
+            "rate_min": 1.5, "rate_max": 2.5}},
+        "brake_from_11": {"profile": "emergency_brake", "kwargs": {"start": 70.0, "v_cruise": 11.0, "v_low": 0.0}},
+        "steps_20_26": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 26.0, "period": 20.0,
+                                                              "v_init": 22.0}},
     }
 
 
@@ -271,12 +303,14 @@ FRESH_5 = ("random_stops_slow_long", "brake_from_13_late", "brake_from_23", "ste
            "perturbation_12", "ramps_ring_350", "perturbation_10_humans_40pct")
 FRESH_6 = ("sine_12_p40", "sine_8_p25", "ramps_3_15", "ramps_6_19_ring_300", "perturbation_14",
            "steps_6_18_humans_35pct", "random_stops_mid", "brake_from_15_late", "sine_22_p35")
+FRESH_7 = ("sine_14_p50", "sine_6_p20", "ramps_5_17_humans_25pct", "ramps_2_12_ring_220", "perturbation_9", "steps_4_16",
+           "random_stops_short", "brake_from_11", "steps_20_26")
 TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
                             if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + FRESH_6
-                            + TRAINING),
+                            + FRESH_7 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
-          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "training": TRAINING}
+          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7, "training": TRAINING}
 
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",

@@ -309,6 +309,11 @@ class ResidualConfig:
     every future gap at or above ``stop_gap`` if the leader brakes as hard as it can from the next step on
     (``mixed_traffic.controllers.classic.StoppingEnvelope``, the safety layer's stopping rule as a term of
     the base); null: no envelope.
+    ``arrive_gain`` (1/s^2, > 0, or null; needs ``stop_gap``): inside the envelope the base's law is also held
+    below an arrival term that reaches the envelope's braking where the constant deceleration matching a slower
+    leader's speed at ``stop_gap`` does, so in the last metres before a standstill the law hands over to that
+    smooth term instead of to the envelope's bound at full braking (``StoppingEnvelope(arrive_gain=...)``);
+    null: off.
     ``catch_up`` (:class:`CatchUpConfig`): the base (inside the envelope) lifted toward an acceleration while
     its leader pulls away from a large gap; off by default.
     ``drive_off`` (:class:`DriveOffConfig`): after a standstill, the command capped so that the CAV eases onto
@@ -344,6 +349,7 @@ class ResidualConfig:
     drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
     join: JoinConfig = field(default_factory=JoinConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
+    arrive_gain: float | None = None  # 1/s^2, > 0: the base's law held below an arrival at stop_gap; null: off
     # the envelope's measurement margins (m, m/s), as the safety layer's (eval.sensor_noise_margin sets them)
     gap_margin: float = 0.0
     speed_margin: float = 0.0

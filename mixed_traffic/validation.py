@@ -136,6 +136,7 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.weight": Real(0),
     "transforms.residual.saturate_base": OneOf((True, False)),
     "transforms.residual.stop_gap": Real(0, lo_open=True, optional=True),
+    "transforms.residual.arrive_gain": Real(0, lo_open=True, optional=True),
     "transforms.residual.envelope_fade": OneOf(("off", "always", "deploy")),
     "transforms.residual.envelope_fade_slack": Real(0, lo_open=True, optional=True),
     "transforms.residual.envelope_fade_slack_below": Real(0, lo_open=True, optional=True),
@@ -376,6 +377,10 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         _check_ordered_pair(cfg, "transforms.residual.join.leader_speeds",
                             "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
     _check_ordered_pair(cfg, "transforms.residual.fade_speeds", "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
+    if (OmegaConf.select(cfg, "transforms.residual.arrive_gain", default=None) is not None
+            and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None):
+        raise ConfigError("transforms.residual.arrive_gain", "set with stop_gap null",
+                          "null, or a gain (1/s^2, > 0) with a stop_gap (the envelope it arrives at)")
     fade_mode = OmegaConf.select(cfg, "transforms.residual.envelope_fade", default="off")
     if fade_mode != "off" and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None:
         raise ConfigError("transforms.residual.envelope_fade", f"{fade_mode} with stop_gap null",

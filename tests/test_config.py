@@ -462,17 +462,20 @@ def test_the_safety_net_is_drive_off_with_the_layer_deployed_as_the_safety_net_a
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
 
-def test_gentle_experiment_changes_only_the_soft_laws_spring_and_the_stand():
+def test_gentle_experiment_changes_only_the_soft_laws_spring_the_stand_and_the_arrival():
     """``experiment=ring_lagrangian_ppo_gentle`` is ``ring_lagrangian_ppo_follow`` with the soft law's ks, kv,
-    kv_closing and kv_closing_near changed and the drive-off cap's ``hold`` on, and nothing else."""
+    kv_closing and kv_closing_near changed, the drive-off cap's ``hold`` on and the envelope's arrival term on
+    (``arrive_gain``), and nothing else."""
     gentle, follow = (compose([f"experiment={n}"]) for n in ("ring_lagrangian_ppo_gentle", "ring_lagrangian_ppo_follow"))
     changed = {"ks": 0.06, "kv": 1.25, "kv_closing": 0.5, "kv_closing_near": 1.0}
     assert {k: gentle.transforms.residual.params[k] for k in changed} == changed
     assert gentle.transforms.residual.drive_off.hold is True and follow.transforms.residual.drive_off.hold is False
+    assert gentle.transforms.residual.arrive_gain == 1.0 and follow.transforms.residual.arrive_gain is None
     with open_dict(gentle):
         for k in changed:
             gentle.transforms.residual.params.pop(k)
             follow.transforms.residual.params.pop(k, None)
         gentle.transforms.residual.drive_off.hold = False
+        gentle.transforms.residual.arrive_gain = None
         gentle.name = follow.name
     assert OmegaConf.to_container(gentle) == OmegaConf.to_container(follow)

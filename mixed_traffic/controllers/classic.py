@@ -275,10 +275,21 @@ class StoppingEnvelope(nn.Module):
     this law that adds at most that much stays inside the envelope (``ResidualAction(room_key=...)``).
     ``gap_margin`` (m) and ``speed_margin`` (m/s): the rule holds for the worst state within them of the measured
     one (the gap shorter, the car faster, the leader slower), for sensors that err by up to that much.
+
+    ``arrive_gain`` (1/s^2, > 0, or None): while the car closes on its leader the law is also held at or below
+    ``-d + arrive_gain * r (1 - d / b)``, where ``r = gap - stop_gap``, ``d = (v - v_leader)^2 / (2 r)`` is the
+    constant deceleration that matches the leader's speed just at ``stop_gap`` and ``b = min(brake,
+    leader_brake)`` the envelope's braking (floored at ``low``; ``low`` where ``r <= 0``). Far from the edge the
+    term is large and does nothing; where ``d`` reaches ``b`` it is ``-b``, and beyond, the arrival's own
+    deceleration. ``a_stop`` alone is a wall: it binds only where the car must brake at ``b`` from the next step
+    on, so a law whose braking fades with the closing speed (a linear law's ``k (v_leader - v)``) eases off in
+    the last metres before a standstill and the wall then takes over at full braking, a command that rises and
+    falls back within half a second. The arrival term is smooth in the state, so the law hands over to it
+    without that kink. The envelope's bound and :meth:`room` are unchanged (default None: off).
     """
 
     def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float,
-                 gap_margin: float = 0.0, speed_margin: float = 0.0):
+                 gap_margin: float = 0.0, speed_margin: float = 0.0, arrive_gain: float | None = None):
         super().__init__()
         from transforms.safety_layer import safe_accel_upper  # mixed_traffic imports the transforms package lazily
 
@@ -286,7 +297,10 @@ class StoppingEnvelope(nn.Module):
             raise ValueError(f"stop_gap = {stop_gap} is invalid; allowed: > 0 (m)")
         if not (gap_margin >= 0.0 and speed_margin >= 0.0):
             raise ValueError(f"gap_margin = {gap_margin}, speed_margin = {speed_margin} are invalid; allowed: >= 0")
+        if arrive_gain is not None and not arrive_gain > 0.0:
+            raise ValueError(f"arrive_gain = {arrive_gain} is invalid; allowed: > 0 (1/s^2), or None")
         self.gap_margin, self.speed_margin = float(gap_margin), float(speed_margin)
+        self.arrive_gain = None if arrive_gain is None else float(arrive_gain)
         self._upper = safe_accel_upper
         self.law, self.stop_gap, self.dt, self.brake, self.low = law, float(stop_gap), float(dt), float(brake), float(low)
         self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
@@ -316,8 +330,23 @@ class StoppingEnvelope(nn.Module):
         """The command and :meth:`room`, from one evaluation of the law (``extra``: the law's further inputs,
         CACC's leader acceleration)."""
         upper = self.bound(gap, speed, leader_speed)
-        command = torch.minimum(self.law(gap, speed, leader_speed, *extra), upper)
+        command = self.law(gap, speed, leader_speed, *extra)
+        if self.arrive_gain is not None:
+            command = torch.minimum(command, self.arrival(gap, speed, leader_speed))
+        command = torch.minimum(command, upper)
         return command, upper - command
+
+    def arrival(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """The arrival term (m/s^2; ``arrive_gain``): ``-d + arrive_gain * r (1 - d / b)`` while the car closes on
+        its leader, inf otherwise, for the worst state within the measurement margins."""
+        gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
+        closing = (speed - leader_speed).clamp_min(0.0)
+        b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), self.leader_brake.to(speed))
+        r = gap - self.stop_gap
+        d = closing * closing / (2.0 * r.clamp_min(1e-6))
+        term = (-d + self.arrive_gain * r * (1.0 - d / b)).clamp_min(self.low)
+        term = torch.where(r > 0, term, torch.full_like(term, self.low))
+        return torch.where(closing > 0, term, torch.full_like(term, math.inf))
 
     def room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
         """``a_stop`` minus the command (m/s^2, >= 0; 0 where the envelope binds)."""
@@ -356,13 +385,13 @@ class _EnvelopeRoom(nn.Module):
 
 def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
                              slack_key: NestedKey | None = None, *, gap_margin: float = 0.0,
-                             speed_margin: float = 0.0) -> TensorDictModule:
+                             speed_margin: float = 0.0, arrive_gain: float | None = None) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
     (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
     writes the envelope's :meth:`~StoppingEnvelope.room` there, and with ``slack_key`` (with ``room_key``)
     its :meth:`~StoppingEnvelope.slack`. ``gap_margin`` / ``speed_margin``: the envelope's measurement margins
-    (m, m/s; :class:`StoppingEnvelope`).
+    (m, m/s; :class:`StoppingEnvelope`); ``arrive_gain``: its arrival term (1/s^2; :class:`StoppingEnvelope`).
 
     >>> from mixed_traffic import make_env
     >>> env = make_env("ring", batch_size=2, seed=0)
@@ -376,7 +405,7 @@ def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, roo
     low, _ = action_bounds(env)
     envelope = StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
                                 leader_brake=scenario_leader_brake(scenario), low=low, gap_margin=gap_margin,
-                                speed_margin=speed_margin)
+                                speed_margin=speed_margin, arrive_gain=arrive_gain)
     if room_key is None:
         if slack_key is not None:
             raise ValueError("stopping_envelope_policy: slack_key needs a room_key")

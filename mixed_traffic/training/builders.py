@@ -336,7 +336,8 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
                                horizon=catch.get("horizon", 0.0))
     if rcfg.get("stop_gap") is not None:
         base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key,
-                                        gap_margin=rcfg.get("gap_margin", 0.0), speed_margin=rcfg.get("speed_margin", 0.0))
+                                        gap_margin=rcfg.get("gap_margin", 0.0), speed_margin=rcfg.get("speed_margin", 0.0),
+                                        arrive_gain=rcfg.get("arrive_gain"))
     return base
 
 
