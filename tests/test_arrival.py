@@ -101,3 +101,28 @@ def test_arrive_gain_reaches_the_envelope_from_the_config_and_bad_values_name_th
         validate_config(compose([GENTLE, "transforms.residual.arrive_gain=0"]))
     with pytest.raises(ConfigError, match=r"transforms\.residual\.arrive_gain.*stop_gap"):
         validate_config(compose([GENTLE, "transforms.residual.stop_gap=null"]))
+
+
+def test_ring_trace_shows_which_part_of_the_base_commands_each_step(benchmark_script, tmp_path):
+    """``benchmarks/ring_trace.py``: per step the base's command is the least of its law, its arrival term and the
+    envelope's bound (the arrival column empty where the term is off), the trace ends at the window, a CSV holds the
+    same rows, and a bad case, episode or window, or a run without a residual over an enveloped base, exits naming
+    what is wrong before anything runs."""
+    mod = benchmark_script("ring_trace")
+    common = ["--experiment", "ring_lagrangian_ppo_gentle", "--case", "brake_to_standstill", "--seconds", "60",
+              "--episodes", "2"]
+    rows = mod.main([*common, "--window", "50", "58", "--out", str(tmp_path / "t.csv")])
+    assert rows[0]["time"] == 50.0 and rows[-1]["time"] == 58.0 and len(rows) == 81
+    for r in rows:
+        assert r["base"] == pytest.approx(min(r["law"], r["arrival"], r["bound"]), abs=1e-5)
+    assert min(r["speed"] for r in rows) < 0.5  # the CAV stopped behind the head within the window
+    assert len((tmp_path / "t.csv").read_text().splitlines()) == len(rows) + 1
+    off = mod.main([*common, "--window", "50", "50.5", "--set", "transforms.residual.arrive_gain=null"])
+    assert all(math.isnan(r["arrival"]) for r in off) and len(off) == 6
+    for bad, said in ((["--case", "brake_from_99"], r"--case: 'brake_from_99' is not a case"),
+                      (["--episode", "2"], r"--episode: 2 is invalid; allowed: 0\.\.1"),
+                      (["--window", "5", "1"], r"--window: \[5\.0, 1\.0\] is invalid")):
+        with pytest.raises(SystemExit, match=said):
+            mod.main([*common, *bad])
+    with pytest.raises(SystemExit, match=r"ring_ppo: the run has no learned residual"):
+        mod.main(["--experiment", "ring_ppo", "--case", "brake_to_standstill", "--seconds", "5"])
