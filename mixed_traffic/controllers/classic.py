@@ -280,12 +280,13 @@ class StoppingEnvelope(nn.Module):
     ``-d + arrive_gain * r (1 - d / b)``, where ``r = gap - stop_gap``, ``d = (v - v_leader)^2 / (2 r)`` is the
     constant deceleration that matches the leader's speed just at ``stop_gap`` and ``b = min(brake,
     leader_brake)`` the envelope's braking (floored at ``low``; ``low`` where ``r <= 0``). Far from the edge the
-    term is large and does nothing; where ``d`` reaches ``b`` it is ``-b``, and beyond, the arrival's own
-    deceleration. ``a_stop`` alone is a wall: it binds only where the car must brake at ``b`` from the next step
+    term is large and does nothing; where ``d`` reaches ``b`` it is ``-b``, and beyond, it brakes harder still
+    (down to ``low``). ``a_stop`` alone is a wall: it binds only where the car must brake at ``b`` from the next step
     on, so a law whose braking fades with the closing speed (a linear law's ``k (v_leader - v)``) eases off in
     the last metres before a standstill and the wall then takes over at full braking, a command that rises and
     falls back within half a second. The arrival term is smooth in the state, so the law hands over to it
-    without that kink. The envelope's bound and :meth:`room` are unchanged (default None: off).
+    without that kink. The envelope's bound is unchanged; :meth:`room` is measured from the command, the arrival
+    term included (default None: off).
     """
 
     def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float,
