@@ -49,7 +49,6 @@ def trace(env, policy, *, episode: int, window: tuple[float, float]) -> list[dic
         raise ValueError("the run's chain has no residual over a base inside a stopping envelope "
                          "(transforms.residual_idm with transforms.residual.stop_gap)")
     act, sc, rows = deterministic_action(policy), env.base_env.scenario, []
-    torch.manual_seed(0)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         for i in range(sc.max_steps):
@@ -105,9 +104,8 @@ def main(argv=None) -> list[dict]:
     import torch
 
     from mixed_traffic.config import compose
-    from mixed_traffic.evaluation.harness import episode_seeds, eval_env_overrides, seed_episodes
+    from mixed_traffic.evaluation.harness import profile_env
     from mixed_traffic.evaluation.policies import checkpoint_config, policy_factory_from_state, zero_residual_factory
-    from mixed_traffic.training.builders import TRAINING_ONLY, make_transformed_env
 
     torch.set_num_threads(1)
     if a.checkpoint is not None:
@@ -118,12 +116,12 @@ def main(argv=None) -> list[dict]:
         run_cfg = gen.apply_set(run_cfg, gen.parse_set(a.set))  # a bad item exits naming it
     case = all_cases[a.case]
     cfg = gen.case_config(run_cfg, case, episodes=a.episodes, seconds=a.seconds, seed=a.seed)
-    env = make_transformed_env(cfg, num_envs=a.episodes, seed=a.seed, without=("safety_layer", *TRAINING_ONLY),
-                               deploy=True, **eval_env_overrides(cfg, case["profile"]))
-    seed_episodes(env, episode_seeds(a.seed, a.episodes))
+    env = profile_env(cfg, case["profile"], episodes=a.episodes, seed=a.seed, without=("safety_layer",))
     try:
         factory = zero_residual_factory(run_cfg) if state is None else policy_factory_from_state(run_cfg, state)
-        rows = trace(env, factory(env), episode=a.episode, window=tuple(a.window))
+        policy = factory(env)
+        torch.manual_seed(a.seed)  # as the evaluation harness does before its rollout
+        rows = trace(env, policy, episode=a.episode, window=tuple(a.window))
     except ValueError as e:
         raise SystemExit(f"{a.checkpoint or a.experiment}: {e}") from None
     print(" ".join(f"{c:>12}" for c in COLUMNS))

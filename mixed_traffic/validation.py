@@ -377,19 +377,8 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         _check_ordered_pair(cfg, "transforms.residual.join.leader_speeds",
                             "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
     _check_ordered_pair(cfg, "transforms.residual.fade_speeds", "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
-    if (OmegaConf.select(cfg, "transforms.residual.arrive_gain", default=None) is not None
-            and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None):
-        raise ConfigError("transforms.residual.arrive_gain", "set with stop_gap null",
-                          "null, or a gain (1/s^2, > 0) with a stop_gap (the envelope it arrives at)")
-    fade_mode = OmegaConf.select(cfg, "transforms.residual.envelope_fade", default="off")
-    if fade_mode != "off" and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None:
-        raise ConfigError("transforms.residual.envelope_fade", f"{fade_mode} with stop_gap null",
-                          "off, or always / deploy with a stop_gap (the envelope it fades against)")
-    if (OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is not None
-            and fade_mode == "off"):
-        raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
-                          "null, or a margin (m, > 0) with envelope_fade always / deploy")
     for field, needs, allowed in (  # a setting of another that must be on
+            ("arrive_gain", "stop_gap", "null, or a gain (1/s^2, > 0) with a stop_gap (the envelope it arrives at)"),
             ("envelope_fade_slack_below", "envelope_fade_slack",
              "null, or a leader speed (m/s, > 0) with an envelope_fade_slack"),
             ("envelope_fade_slack_brake", "envelope_fade_slack",
@@ -398,6 +387,14 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         if (OmegaConf.select(cfg, f"transforms.residual.{field}", default=None) is not None
                 and OmegaConf.select(cfg, f"transforms.residual.{needs}", default=None) is None):
             raise ConfigError(f"transforms.residual.{field}", f"set with {needs.rpartition('.')[2]} null", allowed)
+    fade_mode = OmegaConf.select(cfg, "transforms.residual.envelope_fade", default="off")
+    if fade_mode != "off" and OmegaConf.select(cfg, "transforms.residual.stop_gap", default=None) is None:
+        raise ConfigError("transforms.residual.envelope_fade", f"{fade_mode} with stop_gap null",
+                          "off, or always / deploy with a stop_gap (the envelope it fades against)")
+    if (OmegaConf.select(cfg, "transforms.residual.envelope_fade_slack", default=None) is not None
+            and fade_mode == "off"):
+        raise ConfigError("transforms.residual.envelope_fade_slack", "set with envelope_fade off",
+                          "null, or a margin (m, > 0) with envelope_fade always / deploy")
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     for key in SPEED_LAWS:

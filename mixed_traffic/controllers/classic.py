@@ -312,6 +312,10 @@ class StoppingEnvelope(nn.Module):
 
         return worst_within_margins(gap, speed, leader_speed, self.gap_margin, self.speed_margin)
 
+    def _both_brake(self, like: torch.Tensor) -> torch.Tensor:
+        """``min(brake, leader_brake)``: the braking both cars are assumed to manage (m/s^2)."""
+        return torch.minimum(torch.as_tensor(self.brake, dtype=like.dtype), self.leader_brake.to(like))
+
     def bound(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """``a_stop`` (floored at the car's braking bound: below it only from an already unsafe state), for the
         worst state within the measurement margins."""
@@ -342,7 +346,7 @@ class StoppingEnvelope(nn.Module):
         its leader, inf otherwise, for the worst state within the measurement margins."""
         gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
         closing = (speed - leader_speed).clamp_min(0.0)
-        b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), self.leader_brake.to(speed))
+        b = self._both_brake(speed)
         r = gap - self.stop_gap
         d = closing * closing / (2.0 * r.clamp_min(1e-6))
         term = (-d + self.arrive_gain * r * (1.0 - d / b)).clamp_min(self.low)
@@ -360,8 +364,7 @@ class StoppingEnvelope(nn.Module):
         from transforms.safety_layer import braking_distance, stopping_budget
 
         gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
-        b_l = self.leader_brake.to(speed)
-        b = torch.minimum(torch.as_tensor(self.brake, dtype=speed.dtype), b_l)
+        b_l, b = self.leader_brake.to(speed), self._both_brake(speed)
         v = speed.clamp_min(0.0)
         vl1, c = stopping_budget(gap, leader_speed, s_min=self.stop_gap, dt=self.dt, leader_brake=b_l)
         return torch.minimum(gap - self.stop_gap + (vl1 - v) * self.dt, c - v * self.dt - braking_distance(v, b, self.dt))

@@ -267,6 +267,20 @@ def eval_env_overrides(cfg: DictConfig, profile: str) -> dict:
     return ov
 
 
+def profile_env(cfg: DictConfig, profile: str, *, episodes: int, seed: int, without: tuple[str, ...] = (),
+                init_spacing_rows: list[float] | None = None):
+    """The deployed env of one evaluation profile, ``episodes`` rows seeded as every evaluation seeds them
+    (``without``: transforms dropped from the chain; ``init_spacing_rows``: row ``i`` starts at gap
+    ``init_spacing_rows[i % len]``)."""
+    ov = eval_env_overrides(cfg, profile)
+    if init_spacing_rows is not None:
+        ov["init_spacing_rows"] = tuple(float(x) for x in init_spacing_rows)
+    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, deploy=True,
+                               **ov)
+    seed_episodes(env, episode_seeds(seed, episodes))
+    return env
+
+
 def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None,
                 without: tuple[str, ...] = (), init_spacing_rows: list[float] | None = None):
     """Run ``episodes`` deterministic episodes of ``profile``; returns (metrics, trace).
@@ -274,12 +288,7 @@ def run_profile(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: i
     ``without`` drops transforms from the chain (e.g. the safety layer);
     ``init_spacing_rows`` gives row ``i`` the start gap ``init_spacing_rows[i % len]``.
     """
-    ov = eval_env_overrides(cfg, profile)
-    if init_spacing_rows is not None:
-        ov["init_spacing_rows"] = tuple(float(x) for x in init_spacing_rows)
-    env = make_transformed_env(cfg, num_envs=episodes, seed=seed, without=tuple(without) + TRAINING_ONLY, deploy=True,
-                               **ov)
-    seed_episodes(env, episode_seeds(seed, episodes))
+    env = profile_env(cfg, profile, episodes=episodes, seed=seed, without=without, init_spacing_rows=init_spacing_rows)
     if policy_factory is not None:
         policy = policy_factory(env)
     base = env.base_env
