@@ -119,6 +119,21 @@ brakes to a standstill, one with stops, one above the training speeds:
 - ``brake_from_11``: ``emergency_brake`` from 11 m/s down to 0 m/s at 70 s;
 - ``steps_20_26``: ``random_steps`` at 20-26 m/s, period 20 s, above the training range.
 
+Nine more (``--cases fresh_8``), fixed after the screens of the gentle base's join law and drive-off
+(docs/results.md) and before anything ran on them; six within the training speeds, two with a standstill, one
+above the training speeds:
+
+- ``sine_11_p35``: ``sine`` at 11 +- 3 m/s, period 35 s;
+- ``sine_16_p45_ring_280``: ``sine`` at 16 +- 2 m/s, period 45 s, on a 280 m ring;
+- ``ramps_4_14``: ``random_ramps`` at 4-14 m/s;
+- ``ramps_7_17_humans_20pct``: ``random_ramps`` at 7-17 m/s with the humans' parameters spread +-20 %;
+- ``perturbation_11_ring_240``: ``random_perturbation`` around 11 m/s, +-3 m/s knots every 8 s, on a 240 m ring;
+- ``steps_8_14``: ``random_steps`` at 8-14 m/s, period 25 s;
+- ``random_stops_long``: ``random_stop_and_go`` with holds of 10-25 s at 10-17 m/s, stands of 4-15 s, braking and
+  driving off at 1.0-2.0 m/s^2;
+- ``brake_from_14``: ``emergency_brake`` from 14 m/s down to 0 m/s at 90 s;
+- ``sine_21_p40``: ``sine`` at 21.5 +- 1.5 m/s, period 40 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -286,6 +301,25 @@ def cases(seconds: float) -> dict[str, dict]:
         "brake_from_11": {"profile": "emergency_brake", "kwargs": {"start": 70.0, "v_cruise": 11.0, "v_low": 0.0}},
         "steps_20_26": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 26.0, "period": 20.0,
                                                               "v_init": 22.0}},
+        # fresh_8: fixed after the screens of the gentle base's join law and drive-off (docs/results.md, "Where the
+        # sine at 14 +- 4 m/s and the slow ramps lose their bars", "The drive-off's follow gain on the gentle base"),
+        # before anything ran on them
+        "sine_11_p35": {"profile": "sine", "kwargs": {"v_star": 11.0, "amplitude": 3.0, "period": 35.0}},
+        "sine_16_p45_ring_280": {"profile": "sine", "kwargs": {"v_star": 16.0, "amplitude": 2.0, "period": 45.0},
+                                 "env": {"ring_length": 280.0}},
+        "ramps_4_14": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 14.0}},
+        "ramps_7_17_humans_20pct": {"profile": "random_ramps", "kwargs": {"v_low": 7.0, "v_high": 17.0},
+                                    "eval": {"hdv_param_noise": 0.2}},
+        "perturbation_11_ring_240": {"profile": "random_perturbation", "kwargs": {"v_star": 11.0, "amplitude": 3.0,
+                                                                                  "period": 8.0},
+                                     "env": {"ring_length": 240.0}},
+        "steps_8_14": {"profile": "random_steps", "kwargs": {"v_low": 8.0, "v_high": 14.0, "period": 25.0,
+                                                             "v_init": 11.0}},
+        "random_stops_long": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 10.0, "v_high": 17.0, "hold_min": 10.0, "hold_max": 25.0, "stop_min": 4.0, "stop_max": 15.0,
+            "rate_min": 1.0, "rate_max": 2.0}},
+        "brake_from_14": {"profile": "emergency_brake", "kwargs": {"start": 90.0, "v_cruise": 14.0, "v_low": 0.0}},
+        "sine_21_p40": {"profile": "sine", "kwargs": {"v_star": 21.5, "amplitude": 1.5, "period": 40.0}},
     }
 
 
@@ -305,12 +339,15 @@ FRESH_6 = ("sine_12_p40", "sine_8_p25", "ramps_3_15", "ramps_6_19_ring_300", "pe
            "steps_6_18_humans_35pct", "random_stops_mid", "brake_from_15_late", "sine_22_p35")
 FRESH_7 = ("sine_14_p50", "sine_6_p20", "ramps_5_17_humans_25pct", "ramps_2_12_ring_220", "perturbation_9", "steps_4_16",
            "random_stops_short", "brake_from_11", "steps_20_26")
+FRESH_8 = ("sine_11_p35", "sine_16_p45_ring_280", "ramps_4_14", "ramps_7_17_humans_20pct", "perturbation_11_ring_240",
+           "steps_8_14", "random_stops_long", "brake_from_14", "sine_21_p40")
 TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
                             if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + FRESH_6
-                            + FRESH_7 + TRAINING),
+                            + FRESH_7 + FRESH_8 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
-          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7, "training": TRAINING}
+          "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
+          "fresh_8": FRESH_8, "training": TRAINING}
 
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",

@@ -910,13 +910,13 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert len(mod.case_names(["sine_fast", "held_out"], all_cases)) == 12
     with pytest.raises(SystemExit, match=r"sine_fastest.*a group: \['held_out', 'fresh', 'fresh_2', 'tuning', 'fresh_3', "
                                          r"'fresh_4', 'random_stops', 'fresh_5', 'fresh_6', 'fresh_7', "
-                                         r"'training'\]"):
+                                         r"'fresh_8', 'training'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
     assert len(mod.GROUPS["held_out"]) == 12 and len(mod.GROUPS["fresh_2"]) == 6 and len(mod.GROUPS["fresh_3"]) == 5
     assert len(mod.GROUPS["fresh_4"]) == 5 and len(mod.GROUPS["fresh_5"]) == 9 and len(mod.GROUPS["fresh_6"]) == 9
-    assert len(mod.GROUPS["fresh_7"]) == 9
+    assert len(mod.GROUPS["fresh_7"]) == len(mod.GROUPS["fresh_8"]) == 9
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
@@ -966,6 +966,12 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert (float(v.max()) > 20.5) == (name == "steps_20_26"), name
         assert (float(v.min()) == 0.0) == (name in ("random_stops_short", "brake_from_11")), name
+    # fresh_8: six of nine within the training speeds, two that stand still, one above the training speeds
+    for name in mod.GROUPS["fresh_8"]:
+        v = head_speeds(name, 15000)
+        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
+        assert (float(v.max()) > 20.5) == (name == "sine_21_p40"), name
+        assert (float(v.min()) == 0.0) == (name in ("random_stops_long", "brake_from_14")), name
     fixed = head_speeds("stop_and_go_15", 3000)
     assert torch.equal(fixed, head_speeds("stop_and_go_15", 2000))
 
