@@ -151,6 +151,12 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     there (``kv_closing`` alone at or beyond ``s*``). A head braking hard pulls the gap inside ``s*`` early
     and gets the stronger answer; the everyday small oscillations around ``s*`` get little of it.
 
+    With ``kv = kv_closing = 1 / h`` (``kv_closing_near`` 0, below ``v_ref`` and ``gap_cap``) the linear law is a
+    first-order lag: the gap error ``e = gap - (s0 + h v)`` obeys ``de/dt = -h ks e`` whatever the leader does, and
+    the car's speed is the leader's through a lag of time constant ``h``. Its acceleration is then the leader's
+    through a non-negative kernel, so its total variation (the jerk measure) is at most the leader's; the other
+    gains leave a slow mode that answers each of the leader's speed changes with an overshoot.
+
     ``match_gap_max`` / ``match_gap_min`` (m; off by default) keep the gap inside a band with the least
     constant acceleration: the law adds ``dv |dv| / (2 room)``, ``dv = v_leader - v``, the acceleration
     that matches the leader's speed just as the gap reaches ``match_gap_max`` (leader faster; ``room =

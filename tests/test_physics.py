@@ -331,6 +331,40 @@ def test_soft_follower_band_terms_against_hand_values_and_a_constant_acceleratio
                           torch.tensor([4.0 / 16.0, -4.0 / 26.0]), atol=1e-6)
 
 
+def test_soft_follower_with_speed_gains_of_one_over_its_headway_is_a_first_order_lag():
+    """``kv = kv_closing = 1 / h`` (no near-gap term, no speed scaling): whatever the leader does, the gap error
+    ``e = gap - s0 - h v`` decays as ``e0 exp(-h ks t)``, and from ``e0 = 0`` the car's acceleration is the
+    leader's through a lag, whose total variation (the jerk measure) is below the leader's. The gentle experiment's
+    gains (stronger toward a faster leader than toward a slower one) leave the gap error metres off that curve."""
+    from mixed_traffic.physics import SoftFollowerParams, soft_follower_accel
+
+    h, ks, s0 = 1.3, 0.12, 4.0
+    lag = dataclasses.asdict(SoftFollowerParams()) | {"s0": s0, "h": h, "ks": ks, "kv": 1 / h, "kv_closing": 1 / h,
+                                                      "T": 0.3, "s0_idm": 2.0, "b": 9.0}  # the envelope far off
+    gentle = lag | {"kv": 1.25, "kv_closing": 0.5, "kv_closing_near": 1.0}
+    dt = 0.01
+    t = torch.arange(0.0, 60.0, dt)
+    v_lead = 10.0 + 3.0 * torch.sin(2 * math.pi * t / 20.0) + 2.0 * torch.sin(2 * math.pi * t / 7.0)
+
+    def drive(p, e0):
+        v, gap, errors, accels = v_lead[:1].clone(), torch.tensor([s0 + h * float(v_lead[0]) + e0]), [], []
+        for k in range(len(t)):
+            a = soft_follower_accel(gap, v, v_lead[k:k + 1], **p)
+            errors.append(float(gap - s0 - h * v))
+            accels.append(float(a))
+            v = v + a * dt
+            gap = gap + (v_lead[k] - v) * dt
+        return torch.tensor(errors), torch.tensor(accels)
+
+    errors, _ = drive(lag, 6.0)
+    assert float((errors - 6.0 * torch.exp(-h * ks * t)).abs().max()) < 0.1
+    errors, _ = drive(gentle, 6.0)
+    assert float((errors - 6.0 * torch.exp(-h * ks * t)).abs().max()) > 1.0
+    _, accels = drive(lag, 0.0)
+    a_lead = torch.diff(v_lead) / dt
+    assert float(torch.diff(accels).abs().sum()) < float(torch.diff(a_lead).abs().sum())
+
+
 def test_soft_follower_gradient_is_finite_with_its_defaults():
     """The defaults (no speed scaling, ``v_ref`` inf; no band) give a finite gradient: the analytic policy
     gradient of a residual over this law would otherwise turn the policy's weights into NaN."""
