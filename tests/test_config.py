@@ -479,3 +479,25 @@ def test_gentle_experiment_changes_only_the_soft_laws_spring_the_stand_and_the_a
         gentle.transforms.residual.arrive_gain = None
         gentle.name = follow.name
     assert OmegaConf.to_container(gentle) == OmegaConf.to_container(follow)
+
+
+def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law():
+    """``experiment=ring_lagrangian_ppo_gentle_join`` (the default, ``mt-main``) is ``ring_lagrangian_ppo_gentle`` with the join law's headway,
+    braking and leader-speed gate changed, a deploy-only part (so it trains the gentle experiment's weights); and
+    ``experiment=ring_lagrangian_ppo_lag`` is the former with the soft law's speed gains at 1 / h (a first-order lag)."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_gentle_join"
+    gentle, join, lag = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("gentle", "gentle_join", "lag"))
+    assert join.transforms.residual.join.when == "deploy"
+    assert (join.transforms.residual.join.params.T, join.transforms.residual.join.params.b) == (1.0, 2.0)
+    assert join.transforms.residual.join.leader_speeds is None
+    assert list(gentle.transforms.residual.join.leader_speeds) == [16.0, 20.0]
+    params = lag.transforms.residual.params
+    assert params.kv == params.kv_closing == pytest.approx(1 / params.h, abs=1e-3) and params.kv_closing_near == 0.0
+    for cfg, ref in ((join, gentle), (lag, join)):
+        with open_dict(cfg):
+            cfg.transforms.residual.join = ref.transforms.residual.join
+            cfg.transforms.residual.params = ref.transforms.residual.params
+            cfg.name = ref.name
+        assert OmegaConf.to_container(cfg) == OmegaConf.to_container(ref)

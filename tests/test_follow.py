@@ -1,5 +1,5 @@
-"""The default's floor from the leader's drive-off (experiment=ring_lagrangian_ppo_follow): it is the previous default
-plus ``drive_off.follow: 0.9`` at deployment, it keeps up with the leader's drive-off, and it does so over a dead V2V
+"""The floor from the leader's drive-off (experiment=ring_lagrangian_ppo_follow, and the default that extends it): it is
+ring_lagrangian_ppo_onboard_accel plus ``drive_off.follow: 0.9`` at deployment, it keeps up with the leader's drive-off, and it does so over a dead V2V
 link as over a perfect one (the leader's acceleration read on board)."""
 
 from __future__ import annotations
@@ -41,10 +41,7 @@ def test_the_default_keeps_up_with_the_leaders_drive_off_over_any_link():
     torch.testing.assert_close(dead, a, atol=1e-4, rtol=0)
 
 
-def test_the_default_is_onboard_accel_with_the_follow_floor_at_deployment_and_nothing_else():
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
-
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_follow"
+def test_the_follow_experiment_is_onboard_accel_with_the_follow_floor_at_deployment_and_nothing_else():
     d, prev = (validate_config(compose([f"experiment={n}"]))
                for n in ("ring_lagrangian_ppo_follow", "ring_lagrangian_ppo_onboard_accel"))
     assert d.transforms.residual.drive_off.follow == 0.9
