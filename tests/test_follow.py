@@ -24,7 +24,7 @@ def _drive(experiment: str, *overrides: str, steps: int = 600):
         return env.rollout(steps, lambda td: td.set("action", torch.zeros(1, 1)), break_when_any_done=False)
 
 
-def test_the_default_keeps_up_with_the_leaders_drive_off_over_any_link():
+def test_the_follow_floor_keeps_up_with_the_leaders_drive_off_over_any_link():
     follow, plain = _drive("ring_lagrangian_ppo_follow"), _drive("ring_lagrangian_ppo_onboard_accel")
     a, a_plain = follow["next", "cav", "accel"][0, :, 0], plain["next", "cav", "accel"][0, :, 0]
     a_l = follow["cav", "leader_accel"][0, :, 0]

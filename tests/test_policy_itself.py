@@ -954,24 +954,15 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert (float(v.max()) > 20.5) == (name in above), name
     assert float(head_speeds("random_stops_slow_long", 12000).min()) == 0.0
-    # fresh_6: seven of nine within the training speeds (above 2 m/s and at most 20 m/s), two that stand still
-    for name in mod.GROUPS["fresh_6"]:
-        v = head_speeds(name, 13000)
-        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
-        assert (float(v.max()) > 20.5) == (name == "sine_22_p35"), name
-        assert (float(v.min()) == 0.0) == (name in ("random_stops_mid", "brake_from_15_late")), name
-    # fresh_7: seven of nine within the training speeds, two that stand still, one above the training speeds
-    for name in mod.GROUPS["fresh_7"]:
-        v = head_speeds(name, 14000)
-        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
-        assert (float(v.max()) > 20.5) == (name == "steps_20_26"), name
-        assert (float(v.min()) == 0.0) == (name in ("random_stops_short", "brake_from_11")), name
-    # fresh_8: six of nine within the training speeds, two that stand still, one above the training speeds
-    for name in mod.GROUPS["fresh_8"]:
-        v = head_speeds(name, 15000)
-        assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
-        assert (float(v.max()) > 20.5) == (name == "sine_21_p40"), name
-        assert (float(v.min()) == 0.0) == (name in ("random_stops_long", "brake_from_14")), name
+    # fresh_6, fresh_7, fresh_8: each within the CAV's reach, one case above the training speeds, two that stand still
+    for group, seed, above, stand in (("fresh_6", 13000, "sine_22_p35", ("random_stops_mid", "brake_from_15_late")),
+                                      ("fresh_7", 14000, "steps_20_26", ("random_stops_short", "brake_from_11")),
+                                      ("fresh_8", 15000, "sine_21_p40", ("random_stops_long", "brake_from_14"))):
+        for name in mod.GROUPS[group]:
+            v = head_speeds(name, seed)
+            assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
+            assert (float(v.max()) > 20.5) == (name == above), name
+            assert (float(v.min()) == 0.0) == (name in stand), name
     fixed = head_speeds("stop_and_go_15", 3000)
     assert torch.equal(fixed, head_speeds("stop_and_go_15", 2000))
 
