@@ -819,6 +819,9 @@ class EvalConfig:
     # profile, with the layer and without it from the standard start, and the acceptance gains the bars "jerk at most
     # its" and "return at least its" (null: no reference, no such bars)
     reference: str | None = None
+    # the reference's rollout runs in a forked second process beside the policy's (the same numbers, the second
+    # core's time; the torch backend only): false runs it after the policy's, in this process
+    parallel_reference: bool = True
     # the policy itself: every profile again with the safety layer removed (raw actions
     # executed), from the standard start and from each of these start spacings (m)
     without_layer: bool = True

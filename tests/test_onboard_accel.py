@@ -130,7 +130,7 @@ def test_the_default_drives_over_a_dead_link_as_over_a_perfect_one():
     from mixed_traffic.training.builders import make_transformed_env
     from mixed_traffic.training.on_policy import build_ppo
 
-    short = ["eval.episodes=1", "eval.episode_seconds=60.0", "eval.warmup_seconds=5.0", "eval.profiles=[emergency_brake]",
+    short = ["eval.episodes=1", "eval.episode_seconds=40.0", "eval.warmup_seconds=5.0", "eval.profiles=[emergency_brake]",
              "eval.without_layer=false", "eval.profile_kwargs.emergency_brake.start=20.0"]
     torch.manual_seed(0)
     cfg0 = compose(["experiment=ring_lagrangian_ppo_onboard_accel", *short])

@@ -239,7 +239,7 @@ def test_a_preview_of_the_head_buys_jerk_and_the_clairvoyant_sequence_stays_belo
 def test_a_preview_controller_does_not_use_what_it_cannot_see():
     """Two heads equal up to 30 s and different after it: with no preview the commands up to 30 s are the same;
     with 5 s of preview they are the same up to 25 s and differ before 30 s (it saw the step coming)."""
-    up, down = _ramp_head(30.0), _ramp_head(30.0, v1=20.0)
+    up, down = _ramp_head(30.0, n=400), _ramp_head(30.0, n=400, v1=20.0)  # 40 s: 10 s past where they part
     kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0, horizon=15.0)
     k30, k25 = 299, 249  # the steps that end at 30 s and 25 s
     a, b = (preview_least_jerk(h, preview=0.0, **kw).accel for h in (up, down))

@@ -615,6 +615,14 @@ def test_the_report_judges_the_jerk_and_return_bars_against_idm_as_cav_on_the_sa
     assert acc["return_within_reference"] == all(r["return_diff"] >= 0 for r in rows)
     assert acc["pass"] == all(v for k, v in acc.items() if isinstance(v, bool) and k != "pass")
     assert list(acc)[-1] == "pass"
+    # the reference ran in a forked second process beside the policy's rollout (eval.parallel_reference, the
+    # default); run after it in this process instead, it gives the same report to the bit
+    from mixed_traffic.evaluation.background import can_fork
+
+    assert can_fork()
+    seq = evaluate_and_report(compose(["trainer.progress=false", *SHORT, "eval.close_starts=[]",
+                                       "eval.parallel_reference=false"]), tmp_path / "seq", checkpoint=run)
+    assert seq["reference"] == ref and seq["profiles"] == rep["profiles"]
     md = (tmp_path / "eval" / "report.md").read_text()
     assert "Against idm-as-CAV on the same episodes" in md and "| without the layer: jerk − its |" in md
     for bad in ("nonsense", "idm:s0"):
@@ -1016,12 +1024,12 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     run = _tiny_scratch_run(tmp_path / "run")
     mod = benchmark_script("ring_scorecard")
     out = tmp_path / "sc"
-    args = ["--runs", str(run), str(run), "--groups", "fresh_3", "--episodes", "1", "--seconds", "20",
+    args = ["--runs", str(run), str(run), "--groups", "fresh_3", "--episodes", "1", "--seconds", "10",
             "--classical", "cacc", "--out", str(out)]
     md = mod.main(args)
     assert (out / "scorecard.md").read_text() == md
     assert (out / "scorecard.png").stat().st_size > 10_000  # the figure: per case, jerk and return against the reference
-    assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 20 s a case")
+    assert md.startswith("# Scorecard: 2 run(s), 1 episodes of 10 s a case")
     assert "## fresh_3 (evaluation seed 8000)" in md and "| bars missed (of 2 runs) |" in md
     import re
     head = md.splitlines()[2]  # the count, and where the policy misses, whether a classical controller did better

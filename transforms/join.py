@@ -128,7 +128,7 @@ class JoinBlend(Transform):
         share = share.to(a.dtype).reshape(a.shape)
         if bool((share >= 1.0).all()):  # every row has joined: the law need not run
             return tensordict
-        a_join = self.law(tensordict.clone(False)).get(self.law_out_key).to(a.dtype).reshape(a.shape)
+        a_join = self.law(tensordict.select(*self.law.in_keys, strict=False)).get(self.law_out_key).to(a.dtype).reshape(a.shape)
         gap = tensordict.get(self.gap_key).to(a.dtype).reshape(a.shape)
         time = None
         if self.seconds is not None:

@@ -8,10 +8,12 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from mixed_traffic.evaluation.background import Background
 from mixed_traffic.evaluation.harness import METRICS, episode_metrics, evaluate, with_pass
 from mixed_traffic.evaluation.policies import (
     checkpoint_config,
@@ -113,9 +115,19 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
             raise ConfigError("eval.reference", f"{reference!r} is not a classical controller",
                               "idm, ovm, soft, cacc (NAME:key=number;... for parameters, e.g. 'idm:s0=6'), "
                               "or null") from None
-    report, traces = run(eval_cfg, policy_factory=factory)
-    if reference is not None:
-        report["reference"] = against_reference(eval_cfg, report, reference, ref_factory, run)
+    ref_job = None
+    if reference is not None:  # on the same episodes, in a second process beside the policy's rollout where it can
+        beside = run is evaluate and bool(eval_cfg.eval.get("parallel_reference", True))
+        ref_job = Background(partial(reference_report, eval_cfg, ref_factory, run, progress=not beside),
+                             enabled=beside, name=f"the reference {reference}-as-CAV's evaluation")
+    try:
+        report, traces = run(eval_cfg, policy_factory=factory)
+    except BaseException:
+        if ref_job is not None:
+            ref_job.cancel()
+        raise
+    if ref_job is not None:
+        report["reference"] = against_reference(eval_cfg, report, reference, ref_report=ref_job.result())
         report["acceptance"].update(reference_bars(report["reference"]))
         with_pass(report["acceptance"])
     report["policy"] = label
@@ -146,21 +158,33 @@ def classical_chain(chain, *, layer: bool = False) -> list[str]:
     return [t for t in chain if t.endswith("_reward") or (layer and t == "safety_layer")]
 
 
-def against_reference(cfg: DictConfig, report: dict, name: str, factory, run=evaluate) -> dict:
-    """The policy's jerk and return beside those of the classical controller ``name`` (``factory``:
-    :func:`~mixed_traffic.evaluation.policies.classic_factory`'s) on the same episodes: ``cfg`` (the policy's evaluated
-    config) with the chain cut to its reward transforms (no layer, no residual), run by ``run``. Per profile of
-    ``report``: the reference's mean ``|jerk|`` and return, its collisions, and for the policy with the layer
-    (``"with the layer"``, or ``"policy"`` without a layer in the chain) and without it from the standard start
-    (``"without the layer"``) its own, the jerk in % of the reference's and the return's difference."""
+def reference_report(cfg: DictConfig, factory, run=evaluate, *, progress: bool = True) -> dict:
+    """The report of the classical controller of ``factory`` (:func:`~mixed_traffic.evaluation.policies.classic_factory`'s)
+    on the episodes of ``cfg`` (the policy's evaluated config) with the chain cut to its reward transforms (no layer,
+    no residual), run by ``run``: what :func:`against_reference` compares the policy with."""
     ref_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
     ref_cfg.transforms.chain = classical_chain(cfg.transforms.chain)
     ref_cfg.eval.without_layer = False
-    ref_rep, _ = run(ref_cfg, policy_factory=factory)
+    if not progress:
+        ref_cfg.trainer.progress = False
+    return run(ref_cfg, policy_factory=factory)[0]
+
+
+def against_reference(cfg: DictConfig, report: dict, name: str, factory=None, run=evaluate, *,
+                      ref_report: dict | None = None) -> dict:
+    """The policy's jerk and return beside those of the classical controller ``name`` on the same episodes: its
+    :func:`reference_report` (``ref_report`` where already run, else run here from ``factory`` by ``run``). Per
+    profile of ``report``: the reference's mean ``|jerk|`` and return, its collisions, and for the policy with the
+    layer (``"with the layer"``, or ``"policy"`` without a layer in the chain) and without it from the standard start
+    (``"without the layer"``) its own, the jerk in % of the reference's and the return's difference."""
+    if ref_report is None:
+        if factory is None:
+            raise ValueError("against_reference: pass the reference's factory or its report (ref_report)")
+        ref_report = reference_report(cfg, factory, run)
     layered = "with the layer" if "safety_layer" in cfg.transforms.chain else "policy"
     out = {}
     for prof, entry in report["profiles"].items():
-        r = ref_rep["profiles"][prof]
+        r = ref_report["profiles"][prof]
         ref = {"jerk": r["metrics"]["mean_abs_jerk"]["mean"], "return": r["metrics"]["return"]["mean"]}
         rows = {layered: entry}
         free = (report.get("without_layer") or {}).get(prof)
@@ -235,5 +259,5 @@ def evaluate_waves_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoin
     return report
 
 
-__all__ = ["against_reference", "classical_chain", "policy_rows", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
+__all__ = ["against_reference", "reference_report", "classical_chain", "policy_rows", "reference_bars", "is_wave_ring", "evaluate_waves_and_report", "evaluate", "evaluate_and_report", "episode_metrics", "write_report", "plot_training_curves",
            "read_scalars", "METRICS"]
