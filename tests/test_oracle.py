@@ -220,7 +220,7 @@ def test_a_preview_of_the_head_buys_jerk_and_the_clairvoyant_sequence_stays_belo
     """A step of the head 6 m/s up at 30 s: the CAV that only measures the head answers it inside the band
     with the most jerk, 5 s of preview with less, and the clairvoyant sequence with the least; all keep the
     band, so all stay at or above the clairvoyant optimum."""
-    head = _ramp_head(30.0)
+    head = _ramp_head(30.0, n=600)  # 60 s: the step and half a minute of steady driving after it
     kw = dict(v_start=20.0, gap_start=20.0, dt=DT, warmup=0.0, s_min=5.0, s_max=40.0)
     blind = preview_least_jerk(head, preview=0.0, horizon=15.0, **kw)
     seen = preview_least_jerk(head, preview=5.0, horizon=15.0, **kw)

@@ -661,6 +661,7 @@ def test_mt_eval_controller_base_is_the_policy_with_a_zero_residual(tmp_path):
     assert not (tmp_path / "none").exists()
 
 
+@pytest.mark.slow  # 200-s closed-loop runs of a past experiment's base; its laws' own tests: tests/test_physics.py
 def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_margin(benchmark_script):
     """benchmarks/ring_base_probe.py builds the experiment's base with the ``--set`` overrides: on a head
     braking to standstill the closing gain near the leader (``kv_closing_near``) stops the base alone
@@ -675,6 +676,7 @@ def test_base_probe_applies_overrides_and_the_near_closing_gain_keeps_a_stops_ma
         mod.main(["--experiment", "ring_lagrangian_ppo_tight", "--cases", "brake_to_stop"])
 
 
+@pytest.mark.slow  # 200-s closed-loop runs of a past experiment's base; its laws' own tests: tests/test_physics.py
 def test_band_base_answers_a_fast_heads_steps_inside_the_band_with_less_jerk_than_the_capped_idm(benchmark_script):
     """Above the training range the default's base is the band follower: on a head stepping between 20 and
     28 m/s (one episode of ``fast_steps``, the tuning seed) it keeps the gap inside [5, 40] m without a layer

@@ -42,6 +42,7 @@ def _check_summary(sweep: Path, seeds: list[int]):
     assert len(list(sweep.glob("*/final.pt"))) == len(seeds)
 
 
+@pytest.mark.slow  # starting a local Ray takes half a minute of the 2-core machine, as submitit below
 def test_sweep_on_a_local_ray_cluster(tmp_path):
     """`mt-train -m hydra/launcher=ray seed=0,1`: two jobs as Ray tasks on a 2-CPU local Ray, one sweep summary."""
     _need("ray", "ray")
