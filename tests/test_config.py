@@ -501,3 +501,27 @@ def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law()
             cfg.transforms.residual.params = ref.transforms.residual.params
             cfg.name = ref.name
         assert OmegaConf.to_container(cfg) == OmegaConf.to_container(ref)
+
+
+def test_compose_keeps_a_composition_hands_out_copies_and_sees_a_changed_config_file():
+    """``compose`` keeps what it composed while no file of hydra_configs changes: a second call returns an equal
+    config of its own (a change to one is not seen by the next), and a config file touched on disk is composed
+    again."""
+    import hydra_configs
+    from mixed_traffic import config as C
+
+    over = ["experiment=ring_ppo", "seed=7"]
+    first = compose(over)
+    first.trainer.lr = 123.0  # the caller's copy
+    again = compose(over)
+    assert again.trainer.lr != 123.0 and again.seed == 7 and again is not first
+    assert OmegaConf.to_yaml(again) == OmegaConf.to_yaml(compose(over))
+    kept = C._COMPOSED[(tuple(over), C.CONFIG_NAME)][0]
+    path = os.path.join(os.path.dirname(hydra_configs.__file__), "experiment", "ring_ppo.yaml")
+    st = os.stat(path)
+    try:
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+        compose(over)
+        assert C._COMPOSED[(tuple(over), C.CONFIG_NAME)][0] != kept  # composed again from the tree as it is now
+    finally:
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
