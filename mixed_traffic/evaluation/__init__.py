@@ -127,7 +127,7 @@ def evaluate_and_report(cfg: DictConfig, out_dir: str | Path, *, checkpoint: str
             ref_job.cancel()
         raise
     if ref_job is not None:
-        report["reference"] = against_reference(eval_cfg, report, reference, ref_report=ref_job.result())
+        report["reference"] = against_reference(eval_cfg, report, reference, ref_job.result())
         report["acceptance"].update(reference_bars(report["reference"]))
         with_pass(report["acceptance"])
     report["policy"] = label
@@ -170,17 +170,12 @@ def reference_report(cfg: DictConfig, factory, run=evaluate, *, progress: bool =
     return run(ref_cfg, policy_factory=factory)[0]
 
 
-def against_reference(cfg: DictConfig, report: dict, name: str, factory=None, run=evaluate, *,
-                      ref_report: dict | None = None) -> dict:
-    """The policy's jerk and return beside those of the classical controller ``name`` on the same episodes: its
-    :func:`reference_report` (``ref_report`` where already run, else run here from ``factory`` by ``run``). Per
-    profile of ``report``: the reference's mean ``|jerk|`` and return, its collisions, and for the policy with the
-    layer (``"with the layer"``, or ``"policy"`` without a layer in the chain) and without it from the standard start
-    (``"without the layer"``) its own, the jerk in % of the reference's and the return's difference."""
-    if ref_report is None:
-        if factory is None:
-            raise ValueError("against_reference: pass the reference's factory or its report (ref_report)")
-        ref_report = reference_report(cfg, factory, run)
+def against_reference(cfg: DictConfig, report: dict, name: str, ref_report: dict) -> dict:
+    """The policy's jerk and return beside those of the classical controller ``name`` on the same episodes, from its
+    :func:`reference_report` ``ref_report``. Per profile of ``report``: the reference's mean ``|jerk|`` and return,
+    its collisions, and for the policy with the layer (``"with the layer"``, or ``"policy"`` without a layer in the
+    chain) and without it from the standard start (``"without the layer"``) its own, the jerk in % of the
+    reference's and the return's difference."""
     layered = "with the layer" if "safety_layer" in cfg.transforms.chain else "policy"
     out = {}
     for prof, entry in report["profiles"].items():
