@@ -377,6 +377,36 @@ def test_soft_follower_gradient_is_finite_with_its_defaults():
     assert bool(torch.isfinite(gap.grad).all()) and bool(torch.isfinite(v.grad).all())
 
 
+@pytest.mark.parametrize("settings", [
+    {},                                                         # every optional term off
+    {"ks": 0.0, "kv_closing": 0.5},                             # no gap term: the desired gap is not needed
+    {"match_gap_min": 10.0, "match_gap_max": 32.0, "ks": 0.0},  # a band with fixed edges, no edge gain
+    {"match_gap_max": 32.0, "ks_edge": 0.06},                   # one edge only
+])
+def test_soft_follower_terms_left_out_at_their_off_settings_change_no_bit(settings):
+    """A term whose setting is its off value given as a plain number is left out of the computation; the same
+    settings given as tensors take every term. Command and gradient must agree to the bit, or analytic policy
+    gradients would train other weights than the full law does."""
+    from mixed_traffic.physics import SoftFollowerParams, soft_follower_accel
+
+    p = dataclasses.asdict(SoftFollowerParams()) | {"v_ref": math.inf, "brake_opening": 1.0, "kv_closing_near": 0.0,
+                                                     "match_gap_max": math.inf, "match_gap_min": -math.inf,
+                                                     "ks_edge": 0.0, "match_h_min": 0.0, "match_h_max": 0.0} | settings
+    full = {k: torch.tensor(float(x)) for k, x in p.items()
+            if x is not None and k not in ("s0", "h", "T", "s0_idm", "a", "b", "v0")}
+    g = torch.Generator().manual_seed(0)
+    gap0, v0 = 4.0 + 40.0 * torch.rand(256, generator=g), 25.0 * torch.rand(256, generator=g)
+    lead0 = (v0 + 6.0 * torch.randn(256, generator=g)).clamp_min(0.0)
+    out = []
+    for kw in (p, p | full):
+        gap, v, lead = (x.clone().requires_grad_() for x in (gap0, v0, lead0))
+        a = soft_follower_accel(gap, v, lead, **kw)
+        (a * torch.linspace(-1.0, 2.0, 256)).sum().backward()
+        out.append((a.detach(), gap.grad, v.grad, lead.grad))
+    for left_out, every_term in zip(*out):
+        assert torch.equal(left_out, every_term)
+
+
 def test_speed_scaled_soft_follower_drives_the_ring_without_a_layer():
     from mixed_traffic import make_env
     from mixed_traffic.controllers.classic import make_classic_policy

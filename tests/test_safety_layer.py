@@ -55,6 +55,24 @@ speeds = st.floats(0.0, 40.0)
 brakes = st.floats(1.0, 9.0)
 
 
+def test_stopping_rule_gradient_is_the_slope_of_its_segment():
+    """The stopping rule's speed bound is piecewise linear in the distance budget c: ``u = (c / dt + h m (m + 1) / 2)
+    / (m + 1)`` on segment m. Its segment index is piecewise constant and kept out of the graph, so the gradient
+    must be the active segment's slope ``1 / (dt (m + 1))`` (what analytic policy gradients differentiate)."""
+    from transforms.safety_layer import _max_speed_within_distance
+
+    dt, b = 0.1, torch.tensor(3.0, dtype=D64)
+    c = torch.linspace(0.05, 60.0, 500, dtype=D64, requires_grad=True)
+    u = _max_speed_within_distance(c, b, dt)
+    u.sum().backward()
+    m = torch.floor(u.detach() / (b * dt))  # u lies on segment m: m h <= u < (m + 1) h
+    assert torch.allclose(c.grad, 1.0 / (dt * (m + 1.0)))
+    d = 1e-7  # and the slope of the function itself, by central differences
+    fd = (_max_speed_within_distance(c.detach() + d, b, dt) - _max_speed_within_distance(c.detach() - d, b, dt)) / (2 * d)
+    kink = (u.detach() / (b * dt) - m) < 1e-4  # at a kink the two sides' slopes differ
+    assert torch.allclose(c.grad[~kink], fd[~kink], rtol=1e-5)
+
+
 @PROP
 @given(v=speeds, b=brakes, dt=dts)
 def test_braking_distance_matches_simulation(v, b, dt):

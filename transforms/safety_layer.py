@@ -92,7 +92,8 @@ def braking_distance(v: Tensor, brake: Tensor | float, dt: float) -> Tensor:
     """
     v = v.clamp_min(0.0)
     h = torch.as_tensor(brake, dtype=v.dtype, device=v.device) * dt
-    n = torch.floor(v / h)
+    with torch.no_grad():  # the step count is piecewise constant: its gradient is zero, so it needs no graph
+        n = torch.floor(v / h)
     return dt * (n * v - h * n * (n + 1.0) / 2.0).clamp_min(0.0)
 
 
@@ -102,6 +103,9 @@ def min_future_gap(gap: Tensor, v: Tensor, v_leader: Tensor, *, dt: float,
     b = torch.minimum(torch.as_tensor(brake, dtype=v.dtype), torch.as_tensor(leader_brake, dtype=v.dtype))
     final = gap + braking_distance(v_leader, leader_brake, dt) - braking_distance(v, b, dt)
     return torch.minimum(gap, final)
+
+
+_NEIGHBOURS = torch.tensor([-1.0, 0.0, 1.0])
 
 
 def _max_speed_within_distance(c: Tensor, b: Tensor, dt: float) -> Tensor:
@@ -115,13 +119,11 @@ def _max_speed_within_distance(c: Tensor, b: Tensor, dt: float) -> Tensor:
     """
     h = b * dt
     c = c.clamp_min(0.0)
-    m0 = torch.floor((-1.0 + torch.sqrt(1.0 + 8.0 * c / (dt * h))) / 2.0)
-    best = None
-    for dm in (-1.0, 0.0, 1.0):
-        m = (m0 + dm).clamp_min(0.0)
-        u = (c / dt + h * m * (m + 1.0) / 2.0) / (m + 1.0)
-        best = u if best is None else torch.minimum(best, u)
-    return best
+    with torch.no_grad():  # the segment index is piecewise constant in c: its gradient is zero, so it needs no graph
+        m0 = torch.floor((-1.0 + torch.sqrt(1.0 + 8.0 * c / (dt * h))) / 2.0)
+        m = (m0 + _NEIGHBOURS.to(m0).view(3, *([1] * m0.dim()))).clamp_min(0.0)  # the three segments, stacked
+    u = (c / dt + h * m * (m + 1.0) / 2.0) / (m + 1.0)
+    return torch.minimum(torch.minimum(u[0], u[1]), u[2])
 
 
 def stopping_budget(gap: Tensor, v_leader: Tensor, *, s_min: float, dt: float,

@@ -7,11 +7,17 @@ Subcommands:
           ``ParallelEnv``) and the torch/SUMO ratio.
   qp      DeeP-LCC QP solve time against a dense interior-point reference.
   nnmpc   NNMPC inference time against the QP.
+  apg     seconds of one analytic-gradient window (forward through the env, backward) of an experiment,
+          and the autograd nodes a step adds: what ``make run``'s first phase is made of.
+  gauge   the machine's speed: a plain-torch IDM ring (22 cars, float32) stepped alone, at B = 1 and 1024.
+          Timings of the other commands on two days compare only beside it.
 
 Every figure is a median over ``--repeats`` runs measured in one process. Results are
 printed as a Markdown table and, with ``--out``, written to JSON.
 
     mt-bench env --batch-sizes 1 64 1024 4096 --repeats 5
+    mt-bench apg --windows 3 --repeats 3      # the default experiment (mt-main's)
+    mt-bench gauge
 """
 
 from __future__ import annotations
@@ -172,14 +178,155 @@ def main_env(argv: list[str]) -> dict:
     return result
 
 
+def autograd_nodes(loss: torch.Tensor) -> int:
+    """The number of nodes of ``loss``'s backward graph (what ``backward`` walks)."""
+    seen, stack = set(), [loss.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        stack.extend(f for f, _ in node.next_functions)
+    return len(seen)
+
+
+def bench_apg(overrides: list[str], windows: int, repeats: int) -> dict:
+    """Median seconds of one analytic-gradient window of ``policy.apg.horizon`` steps (forward through the env and
+    the chain, then backward), as :func:`~mixed_traffic.training.apg.apg_pretrain` runs it on the experiment's own
+    env and rows, without the optimizer's step (its cost is a few small tensors); the first window of each repeat is
+    a warm-up. Also the backward graph's nodes per env step."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.apg import apg_env, cut_graph, window_loss
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.training.on_policy import build_ppo
+
+    cfg = compose([*overrides, "trainer.progress=false"])
+    a = cfg.policy.apg
+    head_max = a.get("head_gap_max")
+    margin = a.get("gap_margin")
+    actor = build_ppo(cfg, make_transformed_env(cfg, num_envs=2, seed=int(cfg.seed)))[0]
+    fwd, bwd, nodes = [], [], None
+    for _ in range(repeats):
+        env, j_ref = apg_env(cfg)
+        td = env.reset()
+        env.base_env.differentiable = True
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            for w in range(windows + 1):
+                cut_graph(env)
+                td = td.detach()
+                t0 = time.perf_counter()
+                loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff,
+                                              None if margin is None else float(margin),
+                                              None if head_max is None else float(head_max),
+                                              float(a.get("head_gap_after") or 0.0))
+                t1 = time.perf_counter()
+                if nodes is None:
+                    nodes = autograd_nodes(loss) / a.horizon
+                loss.backward()
+                t2 = time.perf_counter()
+                actor.zero_grad(set_to_none=True)
+                if w:
+                    fwd.append(t1 - t0)
+                    bwd.append(t2 - t1)
+                if ended:
+                    cut_graph(env)
+                    td = env.reset()
+        env.base_env.differentiable = False
+        cut_graph(env)
+        env.close()
+    f, b = statistics.median(fwd), statistics.median(bwd)
+    return {"experiment": cfg.name, "rows": a.num_envs, "horizon": a.horizon, "forward_s": f, "backward_s": b,
+            "window_s": f + b, "nodes_per_step": nodes, "windows": len(fwd)}
+
+
+def _idm_ring_step(x: torch.Tensor, v: torch.Tensor, length: float = 260.0, dt: float = 0.1):
+    """One explicit-Euler step of 22 IDM humans on a ring (v0 30, T 1, a 1, b 1.5, s0 2, 5-m cars)."""
+    gap = (torch.roll(x, -1, 1) - x) % length - 5.0
+    dv = v - torch.roll(v, -1, 1)
+    s_star = 2.0 + v * 1.0 + v * dv / (2.0 * 1.5 ** 0.5)
+    a = 1.0 - (v / 30.0) ** 4 - (s_star / gap) ** 2
+    v_next = (v + a * dt).clamp_min(0.0)
+    return (x + v_next * dt) % length, v_next
+
+
+def bench_gauge(batch_sizes: list[int], steps: int, repeats: int) -> list[dict]:
+    """Steps per second of :func:`_idm_ring_step` alone (plain torch, float32, one thread): a gauge of how fast the
+    machine runs small tensor operations today, which is what the ring's training and evaluation are made of."""
+    rows = []
+    for batch in batch_sizes:
+        x0 = torch.linspace(0.0, 250.0, 22).repeat(batch, 1)
+        v0 = torch.full((batch, 22), 4.0)
+
+        def run(x=x0, v=v0):
+            for _ in range(steps):
+                x, v = _idm_ring_step(x, v)
+
+        median, rates = _median_rate(run, steps, repeats)
+        rows.append({"batch": batch, "steps_per_s": median, "runs": rates})
+    return rows
+
+
+def main_apg(argv: list[str]) -> dict:
+    p = argparse.ArgumentParser(prog="mt-bench apg", description="Seconds of one analytic-gradient window.")
+    p.add_argument("overrides", nargs="*", help="Hydra overrides (default: mt-main's experiment)")
+    p.add_argument("--windows", type=int, default=3, help="timed windows per repeat (after one warm-up)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--out", default=None, help="write the result as JSON here")
+    a = p.parse_args(argv)
+    for name in ("windows", "repeats", "threads"):
+        if getattr(a, name) < 1:
+            p.error(f"--{name} must be >= 1, got {getattr(a, name)}")
+    torch.set_num_threads(a.threads)
+    overrides = list(a.overrides)
+    if not any(o.startswith(("experiment=", "+experiment=")) for o in overrides):
+        from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+
+        overrides.insert(0, f"experiment={DEFAULT_EXPERIMENT}")
+    r = bench_apg(overrides, a.windows, a.repeats)
+    r["command"] = "mt-bench apg " + " ".join(argv)
+    print(f"| experiment | rows x steps | forward s | backward s | window s | nodes per step |\n|---|---|---|---|---|---|\n"
+          f"| {r['experiment']} | {r['rows']} x {r['horizon']} | {r['forward_s']:.3f} | {r['backward_s']:.3f} | "
+          f"{r['window_s']:.3f} | {r['nodes_per_step']:.0f} |")
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(r, f, indent=2)
+    return r
+
+
+def main_gauge(argv: list[str]) -> dict:
+    p = argparse.ArgumentParser(prog="mt-bench gauge", description="The machine's speed at small tensor operations.")
+    p.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 1024])
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--out", default=None, help="write the results as JSON here")
+    a = p.parse_args(argv)
+    for name in ("steps", "repeats"):
+        if getattr(a, name) < 1:
+            p.error(f"--{name} must be >= 1, got {getattr(a, name)}")
+    if any(b < 1 for b in a.batch_sizes):
+        p.error(f"--batch-sizes must all be >= 1, got {a.batch_sizes}")
+    torch.set_num_threads(1)
+    rows = bench_gauge(a.batch_sizes, a.steps, a.repeats)
+    print("| B | IDM ring steps/s |\n|---|---|\n" + "\n".join(f"| {r['batch']} | {r['steps_per_s']:,.0f} |" for r in rows))
+    result = {"command": "mt-bench gauge " + " ".join(argv), "rows": rows, "torch": torch.__version__}
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(result, f, indent=2)
+    return result
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
-    commands = ["env", *EXTERNAL]
+    local = {"env": main_env, "apg": main_apg, "gauge": main_gauge}
+    commands = [*local, *EXTERNAL]
     if not argv or argv[0] not in commands:
         print(__doc__)
         raise SystemExit(f"mt-bench: choose a subcommand from {commands}" if argv else 0)
-    if argv[0] == "env":
-        main_env(argv[1:])
+    if argv[0] in local:
+        local[argv[0]](argv[1:])
         return
     module, fn = EXTERNAL[argv[0]].split(":")
     getattr(importlib.import_module(module), fn)(argv[1:])

@@ -98,6 +98,29 @@ def window_loss(env, actor, td, horizon: int, j_ref: torch.Tensor | None, cost_c
     return total / steps, td, ended
 
 
+def apg_env(cfg: DictConfig):
+    """``(env, j_ref)``: the env analytic gradients train on (the run's transforms less ``policy.apg.without``, with
+    ``policy.apg.num_envs`` rows and its own seed) and the platoon's per-profile cost references (None on the ring)."""
+    from mixed_traffic.envs.traffic import TrafficEnv
+    from mixed_traffic.training.builders import make_transformed_env
+
+    a = cfg.policy.apg
+    env = make_transformed_env(cfg, num_envs=a.num_envs, seed=int(cfg.seed) + 7_919,
+                               without=tuple(a.get("without") or ()))
+    base = env.base_env
+    if type(base) not in (PlatoonEnv, TrafficEnv):  # the SUMO backends and the intersection are not differentiable
+        raise ValueError(f"policy.apg needs a differentiable torch env (env=deeplcc or the ring, backend torch); "
+                         f"got {type(base).__name__}")
+    if a.get("head_gap_max") is not None and type(base) is not TrafficEnv:
+        raise ValueError(f"policy.apg.head_gap_max={a.head_gap_max!r} is invalid on {type(base).__name__}; allowed: "
+                         "null (the head gap is the ring's)")
+    j_ref = _j_ref(a.J_ref, "policy.apg.J_ref") if type(base) is PlatoonEnv else None
+    if j_ref is None and a.J_ref:
+        raise ValueError(f"policy.apg.J_ref={dict(a.J_ref)} is invalid on {type(base).__name__}; allowed: {{}} "
+                         "(per-profile references are the platoon's)")
+    return env, j_ref
+
+
 def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     """Train ``actor`` (its deterministic action) on the run's env by analytic gradients (``cfg.policy.apg``).
 
@@ -110,9 +133,6 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     last N steps (a Polyak / stochastic-weight average) instead of the last step's, which carry
     the noise of the last few windows. Returns ``{"iterations", "loss_first", "loss_last", "seconds"}``.
     """
-    from mixed_traffic.envs.traffic import TrafficEnv
-    from mixed_traffic.training.builders import make_transformed_env
-
     a = cfg.policy.apg
     for name, v in (("iterations", a.iterations), ("horizon", a.horizon), ("num_envs", a.num_envs)):
         if not (isinstance(v, int) and v >= 1):
@@ -138,18 +158,8 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     if not (isinstance(average_last, int) and 0 <= average_last <= a.iterations):
         raise ValueError(f"policy.apg.average_last={average_last!r} is invalid; allowed: an integer in "
                          f"[0, policy.apg.iterations={a.iterations}]")
-    env = make_transformed_env(cfg, num_envs=a.num_envs, seed=int(cfg.seed) + 7_919, without=without)
+    env, j_ref = apg_env(cfg)
     base = env.base_env
-    if type(base) not in (PlatoonEnv, TrafficEnv):  # the SUMO backends and the intersection are not differentiable
-        raise ValueError(f"policy.apg needs a differentiable torch env (env=deeplcc or the ring, backend torch); "
-                         f"got {type(base).__name__}")
-    if head_max is not None and type(base) is not TrafficEnv:
-        raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid on {type(base).__name__}; allowed: null "
-                         "(the head gap is the ring's)")
-    j_ref = _j_ref(a.J_ref, "policy.apg.J_ref") if type(base) is PlatoonEnv else None
-    if j_ref is None and a.J_ref:
-        raise ValueError(f"policy.apg.J_ref={dict(a.J_ref)} is invalid on {type(base).__name__}; allowed: {{}} "
-                         "(per-profile references are the platoon's)")
     params = [p for p in actor.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=a.lr)
     t0, losses = time.perf_counter(), []
