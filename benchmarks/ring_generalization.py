@@ -134,6 +134,21 @@ above the training speeds:
 - ``brake_from_14``: ``emergency_brake`` from 14 m/s down to 0 m/s at 90 s;
 - ``sine_21_p40``: ``sine`` at 21.5 +- 1.5 m/s, period 40 s, above the training range.
 
+Nine more (``--cases fresh_9``), fixed after fresh_8 was scored, with the default unchanged since, and before anything
+ran on them: a second out-of-sample set for the same default; six within the training speeds, one with random stops,
+one that brakes to a standstill late, one above the training speeds:
+
+- ``sine_9_p30``: ``sine`` at 9 +- 2.5 m/s, period 30 s;
+- ``sine_13_p60_ring_230``: ``sine`` at 13 +- 3 m/s, period 60 s, on a 230 m ring;
+- ``ramps_6_16_ring_320``: ``random_ramps`` at 6-16 m/s on a 320 m ring;
+- ``ramps_3_13_humans_30pct``: ``random_ramps`` at 3-13 m/s with the humans' parameters spread +-30 %;
+- ``perturbation_15``: ``random_perturbation`` around 15 m/s, +-2 m/s knots every 7 s;
+- ``steps_5_12``: ``random_steps`` at 5-12 m/s, period 30 s;
+- ``random_stops_gentle``: ``random_stop_and_go`` with holds of 12-30 s at 8-14 m/s, stands of 3-10 s, braking and
+  driving off at 0.8-1.5 m/s^2;
+- ``brake_from_16_late``: ``emergency_brake`` from 16 m/s down to 0 m/s at 110 s;
+- ``ramps_19_24``: ``random_ramps`` at 19-24 m/s, mostly above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -320,6 +335,24 @@ def cases(seconds: float) -> dict[str, dict]:
             "rate_min": 1.0, "rate_max": 2.0}},
         "brake_from_14": {"profile": "emergency_brake", "kwargs": {"start": 90.0, "v_cruise": 14.0, "v_low": 0.0}},
         "sine_21_p40": {"profile": "sine", "kwargs": {"v_star": 21.5, "amplitude": 1.5, "period": 40.0}},
+        # fresh_9: fixed on 2026-11-30 after fresh_8 was scored, with the default unchanged since, before anything ran
+        # on them: a second out-of-sample set for the same default
+        "sine_9_p30": {"profile": "sine", "kwargs": {"v_star": 9.0, "amplitude": 2.5, "period": 30.0}},
+        "sine_13_p60_ring_230": {"profile": "sine", "kwargs": {"v_star": 13.0, "amplitude": 3.0, "period": 60.0},
+                                 "env": {"ring_length": 230.0}},
+        "ramps_6_16_ring_320": {"profile": "random_ramps", "kwargs": {"v_low": 6.0, "v_high": 16.0},
+                                "env": {"ring_length": 320.0}},
+        "ramps_3_13_humans_30pct": {"profile": "random_ramps", "kwargs": {"v_low": 3.0, "v_high": 13.0},
+                                    "eval": {"hdv_param_noise": 0.3}},
+        "perturbation_15": {"profile": "random_perturbation", "kwargs": {"v_star": 15.0, "amplitude": 2.0,
+                                                                         "period": 7.0}},
+        "steps_5_12": {"profile": "random_steps", "kwargs": {"v_low": 5.0, "v_high": 12.0, "period": 30.0,
+                                                             "v_init": 8.0}},
+        "random_stops_gentle": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 14.0, "hold_min": 12.0, "hold_max": 30.0, "stop_min": 3.0, "stop_max": 10.0,
+            "rate_min": 0.8, "rate_max": 1.5}},
+        "brake_from_16_late": {"profile": "emergency_brake", "kwargs": {"start": 110.0, "v_cruise": 16.0, "v_low": 0.0}},
+        "ramps_19_24": {"profile": "random_ramps", "kwargs": {"v_low": 19.0, "v_high": 24.0}},
     }
 
 
@@ -341,13 +374,15 @@ FRESH_7 = ("sine_14_p50", "sine_6_p20", "ramps_5_17_humans_25pct", "ramps_2_12_r
            "random_stops_short", "brake_from_11", "steps_20_26")
 FRESH_8 = ("sine_11_p35", "sine_16_p45_ring_280", "ramps_4_14", "ramps_7_17_humans_20pct", "perturbation_11_ring_240",
            "steps_8_14", "random_stops_long", "brake_from_14", "sine_21_p40")
+FRESH_9 = ("sine_9_p30", "sine_13_p60_ring_230", "ramps_6_16_ring_320", "ramps_3_13_humans_30pct", "perturbation_15",
+           "steps_5_12", "random_stops_gentle", "brake_from_16_late", "ramps_19_24")
 TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
                             if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + FRESH_6
-                            + FRESH_7 + FRESH_8 + TRAINING),
+                            + FRESH_7 + FRESH_8 + FRESH_9 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
-          "fresh_8": FRESH_8, "training": TRAINING}
+          "fresh_8": FRESH_8, "fresh_9": FRESH_9, "training": TRAINING}
 
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",
