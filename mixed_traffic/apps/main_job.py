@@ -57,7 +57,10 @@ def run_main(cfg: DictConfig) -> dict:
     s = result["summary"]
     acc = rep["acceptance"]
     print("")
-    print(f"trained {cfg.name} (seed {cfg.seed}): {s['frames']} frames in {s['wall_seconds']:.0f} s")
+    apg = s.get("apg")  # the analytic-gradient phase before the frames, where the experiment has one
+    first = (f"{apg['iterations']} analytic-gradient steps in {apg['seconds']:.0f} s ({apg['seconds'] / apg['iterations']:.2f} s "
+             "a step; mt-bench apg times one), then " if apg else "")
+    print(f"trained {cfg.name} (seed {cfg.seed}): {first}{s['frames']} frames in {s['wall_seconds']:.0f} s")
     print(f"run directory : {run_dir}")
     print(f"final policy  : {run_dir / 'final.pt'}")
     print(f"report        : {rep['paths']['md']}")
