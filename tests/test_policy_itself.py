@@ -1073,8 +1073,8 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     with pytest.raises(SystemExit, match=r"--set: .* was evaluated with --set \[\], not"):  # another variant: a new --out
         mod.main([*args, "--set", "transforms.safety_layer.deployed_s_max=false"])
     assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
-    with pytest.raises(SystemExit, match=r"--groups: \['fresh_9'\] are not groups"):
-        mod.main(["--runs", str(run), "--groups", "fresh_9", "--out", str(tmp_path / "bad")])
+    with pytest.raises(SystemExit, match=r"--groups: \['fresh_99'\] are not groups"):
+        mod.main(["--runs", str(run), "--groups", "fresh_99", "--out", str(tmp_path / "bad")])
     with pytest.raises(SystemExit, match=r"--runs: .* do not exist"):
         mod.main(["--runs", str(tmp_path / "none"), "--out", str(tmp_path / "bad")])
     assert not (tmp_path / "bad").exists()
