@@ -41,6 +41,13 @@ EXTERNAL = {
 }
 
 
+def write_json(path: str | None, result: dict) -> None:
+    """``result`` as JSON at ``path`` (``--out``), nothing where it is None."""
+    if path:
+        with open(path, "w") as f:
+            json.dump(result, f, indent=2)
+
+
 def _median_rate(fn, frames: int, repeats: int) -> tuple[float, list[float]]:
     rates = []
     for _ in range(repeats):
@@ -172,9 +179,7 @@ def main_env(argv: list[str]) -> dict:
     if a.profile and a.backend != "sumo":
         result["profile"] = profile_rollout(a.scenario, max(a.batch_sizes), 100)
         print(result["profile"])
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(result, f, indent=2)
+    write_json(a.out, result)
     return result
 
 
@@ -198,14 +203,13 @@ def bench_apg(overrides: list[str], windows: int, repeats: int) -> dict:
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from mixed_traffic.config import compose
-    from mixed_traffic.training.apg import apg_env, cut_graph, window_loss
+    from mixed_traffic.training.apg import apg_env, cut_graph, window_loss, window_settings
     from mixed_traffic.training.builders import make_transformed_env
     from mixed_traffic.training.on_policy import build_ppo
 
     cfg = compose([*overrides, "trainer.progress=false"])
     a = cfg.policy.apg
-    head_max = a.get("head_gap_max")
-    margin = a.get("gap_margin")
+    window = window_settings(a)
     actor = build_ppo(cfg, make_transformed_env(cfg, num_envs=2, seed=int(cfg.seed)))[0]
     fwd, bwd, nodes = [], [], None
     for _ in range(repeats):
@@ -217,10 +221,7 @@ def bench_apg(overrides: list[str], windows: int, repeats: int) -> dict:
                 cut_graph(env)
                 td = td.detach()
                 t0 = time.perf_counter()
-                loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff,
-                                              None if margin is None else float(margin),
-                                              None if head_max is None else float(head_max),
-                                              float(a.get("head_gap_after") or 0.0))
+                loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff, **window)
                 t1 = time.perf_counter()
                 if nodes is None:
                     nodes = autograd_nodes(loss) / a.horizon
@@ -242,7 +243,10 @@ def bench_apg(overrides: list[str], windows: int, repeats: int) -> dict:
 
 
 def _idm_ring_step(x: torch.Tensor, v: torch.Tensor, length: float = 260.0, dt: float = 0.1):
-    """One explicit-Euler step of 22 IDM humans on a ring (v0 30, T 1, a 1, b 1.5, s0 2, 5-m cars)."""
+    """One explicit-Euler step of 22 IDM humans on a ring (v0 30, T 1, a 1, b 1.5, s0 2, 5-m cars).
+
+    Written out here rather than through :mod:`mixed_traffic.physics`: the gauge measures the machine, so it must
+    stay the same operations whatever the project's laws become."""
     gap = (torch.roll(x, -1, 1) - x) % length - 5.0
     dv = v - torch.roll(v, -1, 1)
     s_star = 2.0 + v * 1.0 + v * dv / (2.0 * 1.5 ** 0.5)
@@ -280,19 +284,14 @@ def main_apg(argv: list[str]) -> dict:
         if getattr(a, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(a, name)}")
     torch.set_num_threads(a.threads)
-    overrides = list(a.overrides)
-    if not any(o.startswith(("experiment=", "+experiment=")) for o in overrides):
-        from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+    from mixed_traffic.apps.main_job import with_default_experiment
 
-        overrides.insert(0, f"experiment={DEFAULT_EXPERIMENT}")
-    r = bench_apg(overrides, a.windows, a.repeats)
+    r = bench_apg(with_default_experiment(a.overrides), a.windows, a.repeats)
     r["command"] = "mt-bench apg " + " ".join(argv)
     print(f"| experiment | rows x steps | forward s | backward s | window s | nodes per step |\n|---|---|---|---|---|---|\n"
           f"| {r['experiment']} | {r['rows']} x {r['horizon']} | {r['forward_s']:.3f} | {r['backward_s']:.3f} | "
           f"{r['window_s']:.3f} | {r['nodes_per_step']:.0f} |")
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(r, f, indent=2)
+    write_json(a.out, r)
     return r
 
 
@@ -312,9 +311,7 @@ def main_gauge(argv: list[str]) -> dict:
     rows = bench_gauge(a.batch_sizes, a.steps, a.repeats)
     print("| B | IDM ring steps/s |\n|---|---|\n" + "\n".join(f"| {r['batch']} | {r['steps_per_s']:,.0f} |" for r in rows))
     result = {"command": "mt-bench gauge " + " ".join(argv), "rows": rows, "torch": torch.__version__}
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(result, f, indent=2)
+    write_json(a.out, result)
     return result
 
 

@@ -99,10 +99,16 @@ def main(argv: list[str] | DictConfig | None = None):
     """
     if isinstance(argv, DictConfig):
         return run_main(argv)
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if not any(a.startswith(("experiment=", "+experiment=")) for a in argv):
-        argv.insert(0, f"experiment={DEFAULT_EXPERIMENT}")
+    argv = with_default_experiment(sys.argv[1:] if argv is None else argv)
     run_cli(_hydra_main, "mt-main", argv)
+
+
+def with_default_experiment(overrides) -> list[str]:
+    """``overrides`` with ``experiment=DEFAULT_EXPERIMENT`` first unless they name an experiment (``mt-main``'s rule)."""
+    overrides = list(overrides)
+    if not any(o.startswith(("experiment=", "+experiment=")) for o in overrides):
+        overrides.insert(0, f"experiment={DEFAULT_EXPERIMENT}")
+    return overrides
 
 
 if __name__ == "__main__":

@@ -98,6 +98,22 @@ def window_loss(env, actor, td, horizon: int, j_ref: torch.Tensor | None, cost_c
     return total / steps, td, ended
 
 
+def window_settings(a: DictConfig) -> dict:
+    """:func:`window_loss`'s ``gap_margin``, ``head_gap_max`` and ``head_gap_after`` from ``cfg.policy.apg`` ``a``,
+    checked: a bad one is an error that names it."""
+    margin = a.get("gap_margin")
+    if margin is not None and not float(margin) > 0:
+        raise ValueError(f"policy.apg.gap_margin={margin!r} is invalid; allowed: null or > 0 (m)")
+    head_max = a.get("head_gap_max")
+    if head_max is not None and not float(head_max) > 0:
+        raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid; allowed: null or > 0 (m)")
+    head_after = float(a.get("head_gap_after") or 0.0)
+    if not head_after >= 0:
+        raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
+    return {"gap_margin": None if margin is None else float(margin),
+            "head_gap_max": None if head_max is None else float(head_max), "head_gap_after": head_after}
+
+
 def apg_env(cfg: DictConfig):
     """``(env, j_ref)``: the env analytic gradients train on (the run's transforms less ``policy.apg.without``, with
     ``policy.apg.num_envs`` rows and its own seed) and the platoon's per-profile cost references (None on the ring)."""
@@ -145,15 +161,7 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
     if bad:
         raise ValueError(f"policy.apg.without={list(without)} is invalid; allowed: entries of transforms.chain "
                          f"{list(cfg.transforms.chain)}")
-    margin = a.get("gap_margin")
-    if margin is not None and not float(margin) > 0:
-        raise ValueError(f"policy.apg.gap_margin={margin!r} is invalid; allowed: null or > 0 (m)")
-    head_max = a.get("head_gap_max")
-    if head_max is not None and not float(head_max) > 0:
-        raise ValueError(f"policy.apg.head_gap_max={head_max!r} is invalid; allowed: null or > 0 (m)")
-    head_after = float(a.get("head_gap_after") or 0.0)
-    if not head_after >= 0:
-        raise ValueError(f"policy.apg.head_gap_after={head_after!r} is invalid; allowed: >= 0 (s)")
+    window = window_settings(a)
     average_last = a.get("average_last") or 0
     if not (isinstance(average_last, int) and 0 <= average_last <= a.iterations):
         raise ValueError(f"policy.apg.average_last={average_last!r} is invalid; allowed: an integer in "
@@ -173,9 +181,7 @@ def apg_pretrain(actor, cfg: DictConfig, *, log=print) -> dict:
             for it in bar:
                 cut_graph(env)
                 td = td.detach()
-                loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff,
-                                              None if margin is None else float(margin),
-                                              None if head_max is None else float(head_max), head_after)
+                loss, td, ended = window_loss(env, actor, td, a.horizon, j_ref, a.cost_coeff, **window)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, a.max_grad_norm)
