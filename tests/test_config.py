@@ -482,12 +482,9 @@ def test_gentle_experiment_changes_only_the_soft_laws_spring_the_stand_and_the_a
 
 
 def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law():
-    """``experiment=ring_lagrangian_ppo_gentle_join`` (the default, ``mt-main``) is ``ring_lagrangian_ppo_gentle`` with the join law's headway,
+    """``experiment=ring_lagrangian_ppo_gentle_join`` (the default's deployment) is ``ring_lagrangian_ppo_gentle`` with the join law's headway,
     braking and leader-speed gate changed, a deploy-only part (so it trains the gentle experiment's weights); and
     ``experiment=ring_lagrangian_ppo_lag`` is the former with the soft law's speed gains at 1 / h (a first-order lag)."""
-    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
-
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_gentle_join"
     gentle, join, lag = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("gentle", "gentle_join", "lag"))
     assert join.transforms.residual.join.when == "deploy"
     assert (join.transforms.residual.join.params.T, join.transforms.residual.join.params.b) == (1.0, 2.0)
@@ -501,6 +498,21 @@ def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law()
             cfg.transforms.residual.params = ref.transforms.residual.params
             cfg.name = ref.name
         assert OmegaConf.to_container(cfg) == OmegaConf.to_container(ref)
+
+
+def test_default_experiment_is_the_gentle_join_with_fewer_analytic_gradient_steps():
+    """``experiment=ring_lagrangian_ppo_apg60`` (the default, ``mt-main``) is ``ring_lagrangian_ppo_gentle_join`` with
+    60 analytic-gradient steps, the last 50 averaged, and nothing else changed."""
+    from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
+
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_apg60"
+    join, short = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("gentle_join", "apg60"))
+    assert (join.policy.apg.iterations, join.policy.apg.average_last) == (100, 90)
+    assert (short.policy.apg.iterations, short.policy.apg.average_last) == (60, 50)
+    with open_dict(short):
+        short.policy.apg.iterations, short.policy.apg.average_last = 100, 90
+        short.name = join.name
+    assert OmegaConf.to_container(short) == OmegaConf.to_container(join)
 
 
 def test_compose_keeps_a_composition_hands_out_copies_and_sees_a_changed_config_file():
