@@ -149,6 +149,22 @@ one that brakes to a standstill late, one above the training speeds:
 - ``brake_from_16_late``: ``emergency_brake`` from 16 m/s down to 0 m/s at 110 s;
 - ``ramps_19_24``: ``random_ramps`` at 19-24 m/s, mostly above the training range.
 
+Nine more (``--cases fresh_10``), fixed after fresh_9 was scored on the default of that day
+(``experiment=ring_lagrangian_ppo_apg60``) and before anything ran on them: a third out-of-sample set, and the test of
+any change made after it; six within the training speeds, one with random stops, one that brakes to a standstill late,
+one above the training speeds:
+
+- ``sine_15_p50_ring_260``: ``sine`` at 15 +- 2.5 m/s, period 50 s, on a 260 m ring;
+- ``sine_10_p40``: ``sine`` at 10 +- 3 m/s, period 40 s;
+- ``ramps_5_13``: ``random_ramps`` at 5-13 m/s;
+- ``ramps_8_18_humans_25pct``: ``random_ramps`` at 8-18 m/s with the humans' parameters spread +-25 %;
+- ``perturbation_16``: ``random_perturbation`` around 16 m/s, +-2 m/s knots every 6 s;
+- ``perturbation_12_ring_290``: ``random_perturbation`` around 12 m/s, +-2.5 m/s knots every 7 s, on a 290 m ring;
+- ``random_stops_brisk``: ``random_stop_and_go`` with holds of 8-18 s at 9-15 m/s, stands of 2-6 s, braking and
+  driving off at 1.5-2.5 m/s^2;
+- ``brake_from_12_late``: ``emergency_brake`` from 12 m/s down to 0 m/s at 130 s;
+- ``steps_19_23``: ``random_steps`` at 19-23 m/s, period 25 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -353,6 +369,25 @@ def cases(seconds: float) -> dict[str, dict]:
             "rate_min": 0.8, "rate_max": 1.5}},
         "brake_from_16_late": {"profile": "emergency_brake", "kwargs": {"start": 110.0, "v_cruise": 16.0, "v_low": 0.0}},
         "ramps_19_24": {"profile": "random_ramps", "kwargs": {"v_low": 19.0, "v_high": 24.0}},
+        # fresh_10: fixed on 2026-11-30 after fresh_9 was scored on the default (ring_lagrangian_ppo_apg60), before
+        # anything ran on them: a third out-of-sample set, and the test of any change made after it
+        "sine_15_p50_ring_260": {"profile": "sine", "kwargs": {"v_star": 15.0, "amplitude": 2.5, "period": 50.0},
+                                 "env": {"ring_length": 260.0}},
+        "sine_10_p40": {"profile": "sine", "kwargs": {"v_star": 10.0, "amplitude": 3.0, "period": 40.0}},
+        "ramps_5_13": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 13.0}},
+        "ramps_8_18_humans_25pct": {"profile": "random_ramps", "kwargs": {"v_low": 8.0, "v_high": 18.0},
+                                    "eval": {"hdv_param_noise": 0.25}},
+        "perturbation_16": {"profile": "random_perturbation", "kwargs": {"v_star": 16.0, "amplitude": 2.0,
+                                                                         "period": 6.0}},
+        "perturbation_12_ring_290": {"profile": "random_perturbation", "kwargs": {"v_star": 12.0, "amplitude": 2.5,
+                                                                                  "period": 7.0},
+                                     "env": {"ring_length": 290.0}},
+        "random_stops_brisk": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 9.0, "v_high": 15.0, "hold_min": 8.0, "hold_max": 18.0, "stop_min": 2.0, "stop_max": 6.0,
+            "rate_min": 1.5, "rate_max": 2.5}},
+        "brake_from_12_late": {"profile": "emergency_brake", "kwargs": {"start": 130.0, "v_cruise": 12.0, "v_low": 0.0}},
+        "steps_19_23": {"profile": "random_steps", "kwargs": {"v_low": 19.0, "v_high": 23.0, "period": 25.0,
+                                                              "v_init": 20.0}},
     }
 
 
@@ -376,13 +411,15 @@ FRESH_8 = ("sine_11_p35", "sine_16_p45_ring_280", "ramps_4_14", "ramps_7_17_huma
            "steps_8_14", "random_stops_long", "brake_from_14", "sine_21_p40")
 FRESH_9 = ("sine_9_p30", "sine_13_p60_ring_230", "ramps_6_16_ring_320", "ramps_3_13_humans_30pct", "perturbation_15",
            "steps_5_12", "random_stops_gentle", "brake_from_16_late", "ramps_19_24")
+FRESH_10 = ("sine_15_p50_ring_260", "sine_10_p40", "ramps_5_13", "ramps_8_18_humans_25pct", "perturbation_16",
+            "perturbation_12_ring_290", "random_stops_brisk", "brake_from_12_late", "steps_19_23")
 TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
                             if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + FRESH_6
-                            + FRESH_7 + FRESH_8 + FRESH_9 + TRAINING),
+                            + FRESH_7 + FRESH_8 + FRESH_9 + FRESH_10 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
-          "fresh_8": FRESH_8, "fresh_9": FRESH_9, "training": TRAINING}
+          "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "training": TRAINING}
 
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",
