@@ -515,6 +515,20 @@ def test_default_experiment_is_the_gentle_join_with_fewer_analytic_gradient_step
     assert OmegaConf.to_container(short) == OmegaConf.to_container(join)
 
 
+def test_lead_join_is_apg60_with_the_join_law_desired_speed_tied_to_the_leaders_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_lead_join`` (tried, not the default) is ``ring_lagrangian_ppo_apg60`` with the
+    join law's IDM desired speed max(30 m/s, 1.8 x the leader's): only ``transforms.residual.join.params.v0`` and
+    ``.v0_leader`` differ (and the name), so the training, and the weights, are apg60's."""
+    base, lead = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "lead_join"))
+    assert (base.transforms.residual.join.params.v0, lead.transforms.residual.join.params.v0) == (60.0, 30.0)
+    assert lead.transforms.residual.join.params.v0_leader == 1.8 and "v0_leader" not in base.transforms.residual.join.params
+    with open_dict(lead):
+        lead.transforms.residual.join.params.v0 = 60.0
+        del lead.transforms.residual.join.params["v0_leader"]
+        lead.name = base.name
+    assert OmegaConf.to_container(lead) == OmegaConf.to_container(base)
+
+
 def test_compose_keeps_a_composition_hands_out_copies_and_sees_a_changed_config_file():
     """``compose`` keeps what it composed while no file of hydra_configs changes: a second call returns an equal
     config of its own (a change to one is not seen by the next), and a config file touched on disk is composed

@@ -114,6 +114,35 @@ def test_idm_gap_max_is_checked_where_a_controller_is_built():
         make_classic_policy("ovm", low=-3.0, high=3.0, gap_max=34.0)
 
 
+def test_idm_v0_leader_sets_the_desired_speed_to_a_multiple_of_the_leaders_with_v0_as_the_floor():
+    """``make_classic_policy("idm", v0_leader=r)``: per row, IDM's command with the desired speed
+    ``max(v0, r * v_leader)``, computed here with each row's own scalar v0; a leader slower than ``v0 / r``
+    leaves IDM as it is; the setting is IDM's alone and must be positive."""
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    p = dict(s0=7.0, T=1.0, b=2.0)
+    law = make_classic_policy("idm", low=-5.0, high=3.0, v0=10.0, v0_leader=1.8, gap_max=27.0, **p).module
+    plain = make_classic_policy("idm", low=-5.0, high=3.0, v0=10.0, gap_max=27.0, **p).module
+    gap = torch.tensor([[60.0], [40.0], [25.0], [12.0], [8.0]])
+    v = torch.tensor([[10.0], [21.0], [18.0], [9.0], [0.0]])
+    v_l = torch.tensor([[10.0], [16.0], [25.0], [4.0], [0.0]])
+    got = law(gap, v, v_l)
+    for i in range(len(gap)):
+        v0 = max(10.0, 1.8 * float(v_l[i]))
+        one = make_classic_policy("idm", low=-5.0, high=3.0, v0=v0, gap_max=27.0, **p).module
+        assert torch.allclose(got[i], one(gap[i:i + 1], v[i:i + 1], v_l[i:i + 1])[0], atol=1e-6), i
+    slow = (1.8 * v_l < 10.0).squeeze(-1)  # behind a leader slower than v0 / r: the plain law
+    assert bool(slow.any()) and torch.equal(got[slow], plain(gap, v, v_l)[slow])
+    # closing a long gap at 20 m/s on a 17 m/s leader: the desired speed 30.6 m/s eases off where v0 = 60 does not
+    fast_v0 = make_classic_policy("idm", low=-5.0, high=3.0, v0=60.0, gap_max=27.0, **p).module
+    far = (torch.tensor([[70.0]]), torch.tensor([[20.0]]), torch.tensor([[17.0]]))
+    assert float(law(*far)) < float(fast_v0(*far)) - 0.2
+    with pytest.raises(ValueError, match=r"v0_leader = 0.0 is invalid; allowed: > 0"):
+        make_classic_policy("idm", low=-3.0, high=3.0, v0_leader=0.0)
+    with pytest.raises(ValueError, match=r"ovm parameters \['v0_leader'\] are invalid; allowed: \['a_max'"):
+        make_classic_policy("ovm", low=-3.0, high=3.0, v0_leader=1.8)
+
+
 def test_ring_default_base_holds_its_cap_where_the_humans_idm_falls_back():
     """The default experiment's residual base, built from its config, pulls up at 38 m behind a 28 m/s head."""
     from tensordict import TensorDict

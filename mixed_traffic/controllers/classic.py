@@ -79,7 +79,8 @@ class CarFollowingCAV(nn.Module):
     """``a = clip(model(gap, v, v_leader), low, high)`` with the model's saturation rules; CACC also reads
     the leader's acceleration (``model(gap, v, v_leader, a_leader)``; :attr:`reads_leader_accel`)."""
 
-    def __init__(self, model: str, params, low: float, high: float, *, gap_max: float | None = None):
+    def __init__(self, model: str, params, low: float, high: float, *, gap_max: float | None = None,
+                 v0_leader: float | None = None):
         super().__init__()
         if model not in CLASSIC:
             raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
@@ -96,6 +97,13 @@ class CarFollowingCAV(nn.Module):
                 raise ValueError(f"gap_max must be above the standstill gap s0 = {self.params['s0']} m, "
                                  f"got {gap_max}")
             self.params["gap_max"] = float(gap_max)
+        if v0_leader is not None:
+            if model != "idm":
+                raise ValueError(f"v0_leader is an IDM controller's desired speed; {model!r} has none")
+            if not float(v0_leader) > 0.0:
+                raise ValueError(f"v0_leader = {v0_leader} is invalid; allowed: > 0 (the desired speed's multiple of "
+                                 "the leader's speed), or None")
+        self.v0_leader = None if v0_leader is None else float(v0_leader)
         self.reads_leader_accel = model == "cacc" or (model == "closing" and self.params["ka_brake"] > 0.0)
         self.low, self.high = float(low), float(high)
 
@@ -109,6 +117,9 @@ class CarFollowingCAV(nn.Module):
             a = soft_follower_accel(gap, speed, leader_speed, **self.params)
         elif self.model == "closing":
             a = closing_accel(gap, speed, leader_speed, leader_accel, **self.params)
+        elif self.v0_leader is not None:  # IDM whose desired speed is v0_leader times the leader's, at least v0
+            params = {**self.params, "v0": torch.clamp(self.v0_leader * leader_speed, min=self.params["v0"])}
+            a = car_following_accel(self.model, gap, speed, leader_speed, params)
         else:
             a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
         return a.clamp(self.low, self.high)
@@ -426,11 +437,12 @@ def action_bounds(env) -> tuple[float, float]:
 
 
 def classic_parameters(model: str) -> list[str]:
-    """Names ``make_classic_policy(model, ...)`` accepts: the model's parameters (IDM: and ``gap_max``)."""
+    """Names ``make_classic_policy(model, ...)`` accepts: the model's parameters (IDM: and ``gap_max``,
+    ``v0_leader``)."""
     if model not in CLASSIC:
         raise ValueError(f"classic controller {model!r} is invalid; allowed: {list(CLASSIC)}")
     names = {f.name for f in dataclasses.fields(_PARAMS[model])}
-    return sorted(names | ({"gap_max"} if model == "idm" else set()))
+    return sorted(names | ({"gap_max", "v0_leader"} if model == "idm" else set()))
 
 
 def make_classic_policy(model: str, env=None, *, low: float | None = None, high: float | None = None,
@@ -442,7 +454,10 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
     Bounds come from ``env.action_spec`` unless given; ``param_overrides`` replace model
     parameters (``make_classic_policy("idm", env, T=1.5)``); unknown names raise ValueError.
     IDM also takes ``gap_max`` (m): the steady gap stays at or below it at every speed
-    (``mixed_traffic.physics.idm_accel``), a bound the humans' IDM does not have.
+    (``mixed_traffic.physics.idm_accel``), a bound the humans' IDM does not have; and ``v0_leader``: the
+    desired speed is ``max(v0, v0_leader * v_leader)``, so the free-road term eases off at the same multiple of
+    the leader's speed behind any leader (a CAV closing a long gap overshoots a slow leader less, and still
+    catches a fast one).
     """
     allowed = classic_parameters(model)  # an unknown model fails here
     base = _PARAMS[model]()
@@ -451,6 +466,7 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
         raise ValueError(f"{model} parameters {sorted(unknown)} are invalid; allowed: {allowed}")
     param_overrides = dict(param_overrides)
     gap_max = param_overrides.pop("gap_max", None)
+    v0_leader = param_overrides.pop("v0_leader", None)
     params = dataclasses.replace(base, **param_overrides)
     if low is None or high is None:
         if env is None:
@@ -458,7 +474,7 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
         env_low, env_high = action_bounds(env)
         low = env_low if low is None else low
         high = env_high if high is None else high
-    law = CarFollowingCAV(model, params, low, high, gap_max=gap_max)
+    law = CarFollowingCAV(model, params, low, high, gap_max=gap_max, v0_leader=v0_leader)
     in_keys = [("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed")]
     if law.reads_leader_accel:
         if env is not None:
