@@ -117,11 +117,11 @@ class CarFollowingCAV(nn.Module):
             a = soft_follower_accel(gap, speed, leader_speed, **self.params)
         elif self.model == "closing":
             a = closing_accel(gap, speed, leader_speed, leader_accel, **self.params)
-        elif self.v0_leader is not None:  # IDM whose desired speed is v0_leader times the leader's, at least v0
-            params = {**self.params, "v0": torch.clamp(self.v0_leader * leader_speed, min=self.params["v0"])}
-            a = car_following_accel(self.model, gap, speed, leader_speed, params)
         else:
-            a = car_following_accel(self.model, gap, speed, leader_speed, self.params)
+            params = self.params
+            if self.v0_leader is not None:  # IDM whose desired speed is v0_leader times the leader's, at least v0
+                params = {**params, "v0": torch.clamp(self.v0_leader * leader_speed, min=params["v0"])}
+            a = car_following_accel(self.model, gap, speed, leader_speed, params)
         return a.clamp(self.low, self.high)
 
 
