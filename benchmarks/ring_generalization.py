@@ -165,6 +165,23 @@ one above the training speeds:
 - ``brake_from_12_late``: ``emergency_brake`` from 12 m/s down to 0 m/s at 130 s;
 - ``steps_19_23``: ``random_steps`` at 19-23 m/s, period 25 s, above the training range.
 
+Nine more (``--cases fresh_11``), fixed after fresh_10 was scored on the default of that day
+(``experiment=ring_lagrangian_ppo_apg60``) and before anything ran on them: a fourth out-of-sample set, the test of
+any change made after it; six within the training speeds (three of them the smooth heads at 15-17 m/s and the slow
+ramps that fresh_8 to fresh_10 lost), one with random stops, one that brakes to a standstill late, one above the
+training speeds:
+
+- ``sine_16_p40_ring_270``: ``sine`` at 16 +- 2 m/s, period 40 s, on a 270 m ring;
+- ``sine_12_p55``: ``sine`` at 12 +- 3.5 m/s, period 55 s;
+- ``ramps_4_12_ring_300``: ``random_ramps`` at 4-12 m/s on a 300 m ring;
+- ``ramps_9_17_humans_30pct``: ``random_ramps`` at 9-17 m/s with the humans' parameters spread +-30 %;
+- ``perturbation_17_ring_250``: ``random_perturbation`` around 17 m/s, +-1.5 m/s knots every 8 s, on a 250 m ring;
+- ``steps_7_15``: ``random_steps`` at 7-15 m/s, period 20 s;
+- ``random_stops_mixed``: ``random_stop_and_go`` with holds of 10-22 s at 7-16 m/s, stands of 3-8 s, braking and
+  driving off at 1.0-2.0 m/s^2;
+- ``brake_from_18_late``: ``emergency_brake`` from 18 m/s down to 0 m/s at 120 s;
+- ``sine_22_p50``: ``sine`` at 22 +- 1.5 m/s, period 50 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -388,6 +405,25 @@ def cases(seconds: float) -> dict[str, dict]:
         "brake_from_12_late": {"profile": "emergency_brake", "kwargs": {"start": 130.0, "v_cruise": 12.0, "v_low": 0.0}},
         "steps_19_23": {"profile": "random_steps", "kwargs": {"v_low": 19.0, "v_high": 23.0, "period": 25.0,
                                                               "v_init": 20.0}},
+        # fresh_11: fixed on 2026-11-30 after fresh_10 was scored on the default (ring_lagrangian_ppo_apg60), before
+        # anything ran on them: a fourth out-of-sample set, and the test of any change made after it
+        "sine_16_p40_ring_270": {"profile": "sine", "kwargs": {"v_star": 16.0, "amplitude": 2.0, "period": 40.0},
+                                 "env": {"ring_length": 270.0}},
+        "sine_12_p55": {"profile": "sine", "kwargs": {"v_star": 12.0, "amplitude": 3.5, "period": 55.0}},
+        "ramps_4_12_ring_300": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 12.0},
+                                "env": {"ring_length": 300.0}},
+        "ramps_9_17_humans_30pct": {"profile": "random_ramps", "kwargs": {"v_low": 9.0, "v_high": 17.0},
+                                    "eval": {"hdv_param_noise": 0.3}},
+        "perturbation_17_ring_250": {"profile": "random_perturbation", "kwargs": {"v_star": 17.0, "amplitude": 1.5,
+                                                                                  "period": 8.0},
+                                     "env": {"ring_length": 250.0}},
+        "steps_7_15": {"profile": "random_steps", "kwargs": {"v_low": 7.0, "v_high": 15.0, "period": 20.0,
+                                                             "v_init": 10.0}},
+        "random_stops_mixed": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 7.0, "v_high": 16.0, "hold_min": 10.0, "hold_max": 22.0, "stop_min": 3.0, "stop_max": 8.0,
+            "rate_min": 1.0, "rate_max": 2.0}},
+        "brake_from_18_late": {"profile": "emergency_brake", "kwargs": {"start": 120.0, "v_cruise": 18.0, "v_low": 0.0}},
+        "sine_22_p50": {"profile": "sine", "kwargs": {"v_star": 22.0, "amplitude": 1.5, "period": 50.0}},
     }
 
 
@@ -413,13 +449,16 @@ FRESH_9 = ("sine_9_p30", "sine_13_p60_ring_230", "ramps_6_16_ring_320", "ramps_3
            "steps_5_12", "random_stops_gentle", "brake_from_16_late", "ramps_19_24")
 FRESH_10 = ("sine_15_p50_ring_260", "sine_10_p40", "ramps_5_13", "ramps_8_18_humans_25pct", "perturbation_16",
             "perturbation_12_ring_290", "random_stops_brisk", "brake_from_12_late", "steps_19_23")
+FRESH_11 = ("sine_16_p40_ring_270", "sine_12_p55", "ramps_4_12_ring_300", "ramps_9_17_humans_30pct",
+            "perturbation_17_ring_250", "steps_7_15", "random_stops_mixed", "brake_from_18_late", "sine_22_p50")
 TRAINING = ("training_ramps",)
 GROUPS = {"held_out": tuple(n for n in cases(0.0)
                             if n not in FRESH + TUNING + FRESH_2 + FRESH_3 + FRESH_4 + RANDOM_STOPS + FRESH_5 + FRESH_6
-                            + FRESH_7 + FRESH_8 + FRESH_9 + FRESH_10 + TRAINING),
+                            + FRESH_7 + FRESH_8 + FRESH_9 + FRESH_10 + FRESH_11 + TRAINING),
           "fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
-          "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "training": TRAINING}
+          "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
+          "training": TRAINING}
 
 
 KINDS = ("stop-and-go", "braking to a standstill", "above the training speeds", "another ring length",
