@@ -182,6 +182,22 @@ training speeds:
 - ``brake_from_18_late``: ``emergency_brake`` from 18 m/s down to 0 m/s at 120 s;
 - ``sine_22_p50``: ``sine`` at 22 +- 1.5 m/s, period 50 s, above the training range.
 
+Nine more (``--cases fresh_12``), fixed after fresh_11 was scored on a join that accelerates at 1.4 m/s^2
+(``experiment=ring_lagrangian_ppo_calm_join``) and before anything ran on them: a fifth out-of-sample set, the test of
+any change made after it; the same mix as fresh_11, two of them from a 290-m and a 330-m ring's longer start:
+
+- ``sine_17_p45_ring_290``: ``sine`` at 17 +- 1.5 m/s, period 45 s, on a 290 m ring;
+- ``sine_13_p35``: ``sine`` at 13 +- 2.5 m/s, period 35 s;
+- ``ramps_5_11_ring_260``: ``random_ramps`` at 5-11 m/s on a 260 m ring;
+- ``ramps_10_18``: ``random_ramps`` at 10-18 m/s;
+- ``perturbation_16_humans_30pct``: ``random_perturbation`` around 16 m/s, +-2 m/s knots every 7 s, with the humans'
+  parameters spread +-30 %;
+- ``steps_9_19``: ``random_steps`` at 9-19 m/s, period 18 s;
+- ``random_stops_long_holds``: ``random_stop_and_go`` with holds of 15-30 s at 8-18 m/s, stands of 4-10 s, braking
+  and driving off at 1.2-2.2 m/s^2;
+- ``brake_from_17_late_ring_330``: ``emergency_brake`` from 17 m/s down to 0 m/s at 130 s, on a 330 m ring;
+- ``sine_23_p60``: ``sine`` at 23 +- 1.5 m/s, period 60 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -424,6 +440,26 @@ def cases(seconds: float) -> dict[str, dict]:
             "rate_min": 1.0, "rate_max": 2.0}},
         "brake_from_18_late": {"profile": "emergency_brake", "kwargs": {"start": 120.0, "v_cruise": 18.0, "v_low": 0.0}},
         "sine_22_p50": {"profile": "sine", "kwargs": {"v_star": 22.0, "amplitude": 1.5, "period": 50.0}},
+        # fresh_12: fixed on 2026-12-01 after fresh_11 was scored on the join that accelerates at 1.4 m/s^2, before
+        # anything ran on them: a fifth out-of-sample set, and the test of any change made after it
+        "sine_17_p45_ring_290": {"profile": "sine", "kwargs": {"v_star": 17.0, "amplitude": 1.5, "period": 45.0},
+                                 "env": {"ring_length": 290.0}},
+        "sine_13_p35": {"profile": "sine", "kwargs": {"v_star": 13.0, "amplitude": 2.5, "period": 35.0}},
+        "ramps_5_11_ring_260": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 11.0},
+                                "env": {"ring_length": 260.0}},
+        "ramps_10_18": {"profile": "random_ramps", "kwargs": {"v_low": 10.0, "v_high": 18.0}},
+        "perturbation_16_humans_30pct": {"profile": "random_perturbation", "kwargs": {"v_star": 16.0, "amplitude": 2.0,
+                                                                                      "period": 7.0},
+                                         "eval": {"hdv_param_noise": 0.3}},
+        "steps_9_19": {"profile": "random_steps", "kwargs": {"v_low": 9.0, "v_high": 19.0, "period": 18.0,
+                                                             "v_init": 12.0}},
+        "random_stops_long_holds": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 18.0, "hold_min": 15.0, "hold_max": 30.0, "stop_min": 4.0, "stop_max": 10.0,
+            "rate_min": 1.2, "rate_max": 2.2}},
+        "brake_from_17_late_ring_330": {"profile": "emergency_brake", "kwargs": {"start": 130.0, "v_cruise": 17.0,
+                                                                                 "v_low": 0.0},
+                                        "env": {"ring_length": 330.0}},
+        "sine_23_p60": {"profile": "sine", "kwargs": {"v_star": 23.0, "amplitude": 1.5, "period": 60.0}},
     }
 
 
@@ -451,11 +487,13 @@ FRESH_10 = ("sine_15_p50_ring_260", "sine_10_p40", "ramps_5_13", "ramps_8_18_hum
             "perturbation_12_ring_290", "random_stops_brisk", "brake_from_12_late", "steps_19_23")
 FRESH_11 = ("sine_16_p40_ring_270", "sine_12_p55", "ramps_4_12_ring_300", "ramps_9_17_humans_30pct",
             "perturbation_17_ring_250", "steps_7_15", "random_stops_mixed", "brake_from_18_late", "sine_22_p50")
+FRESH_12 = ("sine_17_p45_ring_290", "sine_13_p35", "ramps_5_11_ring_260", "ramps_10_18", "perturbation_16_humans_30pct",
+            "steps_9_19", "random_stops_long_holds", "brake_from_17_late_ring_330", "sine_23_p60")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
-          "training": TRAINING}
+          "fresh_12": FRESH_12, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
