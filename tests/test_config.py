@@ -496,6 +496,31 @@ def test_default_experiment_is_the_gentle_join_with_fewer_analytic_gradient_step
     assert_differs_only_in(short, join, {"policy.apg.iterations": 60, "policy.apg.average_last": 50})
 
 
+def test_calm_join_is_apg60_with_a_join_law_that_accelerates_at_1_4_and_nothing_else():
+    """``experiment=ring_lagrangian_ppo_calm_join`` is ``ring_lagrangian_ppo_apg60`` with the join law's acceleration
+    at 1.4 m/s^2 (IDM's 2.0 before), a deploy-only part, so it trains apg60's weights."""
+    apg60, calm = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "calm_join"))
+    assert calm.transforms.residual.join.when == "deploy" and "a" not in apg60.transforms.residual.join.params
+    assert_differs_only_in(calm, apg60, {"transforms.residual.join.params.a": 1.4})
+
+
+def test_stable_experiment_is_apg60_with_a_linear_string_stable_base_and_the_calm_join():
+    """``experiment=ring_lagrangian_ppo_stable`` (tried, not kept) is ``ring_lagrangian_ppo_apg60`` with the soft law
+    made linear at every speed below the top-speed laws (the high-speed IDM off, no speed scaling, one speed gain
+    both ways) with ``2 kv h + ks h^2 >= 2`` (no oscillation of the leader's speed amplified, linearised), and the join
+    accelerating at 1.4 m/s^2 and handing over at 26 m or 40 s."""
+    apg60, stable = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "stable"))
+    p = stable.transforms.residual.params
+    assert 2 * p.kv * p.h + p.ks * p.h**2 >= 2 and p.kv == p.kv_closing
+    assert_differs_only_in(stable, apg60, {
+        "transforms.residual.params.ks": 0.4, "transforms.residual.params.kv": 0.55,
+        "transforms.residual.params.kv_closing": 0.55, "transforms.residual.params.kv_closing_near": 0.0,
+        "transforms.residual.params.h": 1.3, "transforms.residual.params.s0": 0.5,
+        "transforms.residual.params.v_ref": None, "transforms.residual.high_speed.base": None,
+        "transforms.residual.join.params.a": 1.4, "transforms.residual.join.gap": 26.0,
+        "transforms.residual.join.seconds": 40.0})
+
+
 def test_lead_join_is_apg60_with_the_join_law_desired_speed_tied_to_the_leaders_and_nothing_else():
     """``experiment=ring_lagrangian_ppo_lead_join`` (tried, not the default) is ``ring_lagrangian_ppo_apg60`` with the
     join law's IDM desired speed max(30 m/s, 1.8 x the leader's): only ``transforms.residual.join.params.v0`` and
