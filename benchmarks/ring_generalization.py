@@ -198,6 +198,21 @@ any change made after it; the same mix as fresh_11, two of them from a 290-m and
 - ``brake_from_17_late_ring_330``: ``emergency_brake`` from 17 m/s down to 0 m/s at 130 s, on a 330 m ring;
 - ``sine_23_p60``: ``sine`` at 23 +- 1.5 m/s, period 60 s, above the training range.
 
+Nine more (``--cases fresh_13``), fixed after fresh_12 was scored and before anything ran on them: a sixth
+out-of-sample set, the test of any change made after fresh_12; the same mix, two from a 300-m and a 270-m ring:
+
+- ``sine_16_p50_ring_300``: ``sine`` at 16 +- 2 m/s, period 50 s, on a 300 m ring;
+- ``sine_11_p45``: ``sine`` at 11 +- 3 m/s, period 45 s;
+- ``ramps_4_10``: ``random_ramps`` at 4-10 m/s;
+- ``ramps_8_16_ring_280``: ``random_ramps`` at 8-16 m/s on a 280 m ring;
+- ``perturbation_15_humans_20pct``: ``random_perturbation`` around 15 m/s, +-2 m/s knots every 8 s, with the humans'
+  parameters spread +-20 %;
+- ``steps_6_16_ring_250``: ``random_steps`` at 6-16 m/s, period 16 s, on a 250 m ring;
+- ``random_stops_quick``: ``random_stop_and_go`` with holds of 8-18 s at 9-17 m/s, stands of 2-6 s, braking and
+  driving off at 1.5-2.5 m/s^2;
+- ``brake_from_16_late_ring_270``: ``emergency_brake`` from 16 m/s down to 0 m/s at 125 s, on a 270 m ring;
+- ``steps_20_25``: ``random_steps`` at 20-25 m/s, period 20 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -460,6 +475,28 @@ def cases(seconds: float) -> dict[str, dict]:
                                                                                  "v_low": 0.0},
                                         "env": {"ring_length": 330.0}},
         "sine_23_p60": {"profile": "sine", "kwargs": {"v_star": 23.0, "amplitude": 1.5, "period": 60.0}},
+        # fresh_13: fixed on 2026-12-01 after fresh_12 was scored, before anything ran on them: a sixth out-of-sample
+        # set, and the test of any change made after fresh_12
+        "sine_16_p50_ring_300": {"profile": "sine", "kwargs": {"v_star": 16.0, "amplitude": 2.0, "period": 50.0},
+                                 "env": {"ring_length": 300.0}},
+        "sine_11_p45": {"profile": "sine", "kwargs": {"v_star": 11.0, "amplitude": 3.0, "period": 45.0}},
+        "ramps_4_10": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 10.0}},
+        "ramps_8_16_ring_280": {"profile": "random_ramps", "kwargs": {"v_low": 8.0, "v_high": 16.0},
+                                "env": {"ring_length": 280.0}},
+        "perturbation_15_humans_20pct": {"profile": "random_perturbation", "kwargs": {"v_star": 15.0, "amplitude": 2.0,
+                                                                                      "period": 8.0},
+                                         "eval": {"hdv_param_noise": 0.2}},
+        "steps_6_16_ring_250": {"profile": "random_steps", "kwargs": {"v_low": 6.0, "v_high": 16.0, "period": 16.0,
+                                                                      "v_init": 10.0},
+                                "env": {"ring_length": 250.0}},
+        "random_stops_quick": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 9.0, "v_high": 17.0, "hold_min": 8.0, "hold_max": 18.0, "stop_min": 2.0, "stop_max": 6.0,
+            "rate_min": 1.5, "rate_max": 2.5}},
+        "brake_from_16_late_ring_270": {"profile": "emergency_brake", "kwargs": {"start": 125.0, "v_cruise": 16.0,
+                                                                                 "v_low": 0.0},
+                                        "env": {"ring_length": 270.0}},
+        "steps_20_25": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 25.0, "period": 20.0,
+                                                              "v_init": 21.0}},
     }
 
 
@@ -489,11 +526,13 @@ FRESH_11 = ("sine_16_p40_ring_270", "sine_12_p55", "ramps_4_12_ring_300", "ramps
             "perturbation_17_ring_250", "steps_7_15", "random_stops_mixed", "brake_from_18_late", "sine_22_p50")
 FRESH_12 = ("sine_17_p45_ring_290", "sine_13_p35", "ramps_5_11_ring_260", "ramps_10_18", "perturbation_16_humans_30pct",
             "steps_9_19", "random_stops_long_holds", "brake_from_17_late_ring_330", "sine_23_p60")
+FRESH_13 = ("sine_16_p50_ring_300", "sine_11_p45", "ramps_4_10", "ramps_8_16_ring_280", "perturbation_15_humans_20pct",
+            "steps_6_16_ring_250", "random_stops_quick", "brake_from_16_late_ring_270", "steps_20_25")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
-          "fresh_12": FRESH_12, "training": TRAINING}
+          "fresh_12": FRESH_12, "fresh_13": FRESH_13, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
