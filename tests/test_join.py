@@ -155,3 +155,31 @@ def test_join_is_cap_hold_with_the_deployed_join_and_nothing_else():
     with open_dict(d):
         d.transforms.residual.join, d.name = prev.transforms.residual.join, prev.name
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
+
+
+def test_idm_join_joins_under_idm_cavs_own_law_where_the_capped_law_brakes_later():
+    """``experiment=ring_lagrangian_ppo_idm_join`` (tried, not the default) is ``ring_lagrangian_ppo_apg60`` whose
+    deployed join law is IDM_cav (s0 7 m, v0 40 m/s, b 2 m/s^2, T 1 s, no headway cap): its command equals IDM_cav's
+    wherever the stopping envelope leaves it alone. In the long start's overshoot (the CAV faster than its leader,
+    still far behind) the default's law (v0 60 m/s, headway capped at a 27-m steady gap) wants a smaller gap and more
+    speed, so it brakes later."""
+    from mixed_traffic.training.builders import join_blend
+    from tests.test_config import assert_differs_only_in
+
+    apg60, idm_join = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"])) for n in ("apg60", "idm_join"))
+    assert_differs_only_in(idm_join, apg60, {"transforms.residual.join.params.v0": 40.0,
+                                             "transforms.residual.join.params.gap_max": None})
+    env = make_env("ring", batch_size=4, seed=0)
+    gap, speed, leader = (torch.tensor([[60.0], [45.0], [30.0], [24.0]]), torch.tensor([[22.0], [21.0], [19.0], [17.0]]),
+                          torch.tensor([[17.0], [17.0], [17.0], [16.0]]))
+    td = env.reset()
+    td["cav", "gap"], td["cav", "speed"], td["cav", "leader_speed"] = gap, speed, leader
+
+    def command(cfg, law=None):
+        law = law or join_blend(cfg.transforms.residual, env).law
+        return law(td.clone())[law.out_keys[0]]
+
+    idm_cav = make_classic_policy("idm", env, s0=7.0, v0=40.0, b=2.0)
+    joined, capped = command(idm_join), command(apg60)
+    torch.testing.assert_close(joined, command(None, idm_cav))
+    assert bool((capped > joined + 0.05).all()), (capped, joined)
