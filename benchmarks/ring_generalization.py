@@ -213,6 +213,20 @@ out-of-sample set, the test of any change made after fresh_12; the same mix, two
 - ``brake_from_16_late_ring_270``: ``emergency_brake`` from 16 m/s down to 0 m/s at 125 s, on a 270 m ring;
 - ``steps_20_25``: ``random_steps`` at 20-25 m/s, period 20 s, above the training range.
 
+Nine more (``--cases fresh_14``), fixed after fresh_13 was scored and before anything ran on them: a seventh
+out-of-sample set, the test of any change made after fresh_13; the same mix:
+
+- ``sine_17_p40_ring_260``: ``sine`` at 17 +- 1.5 m/s, period 40 s, on a 260 m ring;
+- ``sine_14_p45``: ``sine`` at 14 +- 2.5 m/s, period 45 s;
+- ``ramps_3_9_ring_300``: ``random_ramps`` at 3-9 m/s on a 300 m ring;
+- ``ramps_11_19``: ``random_ramps`` at 11-19 m/s;
+- ``perturbation_16_ring_280``: ``random_perturbation`` around 16 m/s, +-2 m/s knots every 7 s, on a 280 m ring;
+- ``steps_8_18_humans_25pct``: ``random_steps`` at 8-18 m/s, period 17 s, with the humans' parameters spread +-25 %;
+- ``random_stops_slow_quick``: ``random_stop_and_go`` with holds of 6-14 s at 6-14 m/s, stands of 3-8 s, braking and
+  driving off at 1.0-2.0 m/s^2;
+- ``brake_from_19_late``: ``emergency_brake`` from 19 m/s down to 0 m/s at 115 s;
+- ``ramps_20_25``: ``random_ramps`` at 20-25 m/s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -497,6 +511,25 @@ def cases(seconds: float) -> dict[str, dict]:
                                         "env": {"ring_length": 270.0}},
         "steps_20_25": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 25.0, "period": 20.0,
                                                               "v_init": 21.0}},
+        # fresh_14: fixed on 2026-12-01 after fresh_13 was scored, before anything ran on them: a seventh out-of-sample
+        # set, and the test of any change made after fresh_13
+        "sine_17_p40_ring_260": {"profile": "sine", "kwargs": {"v_star": 17.0, "amplitude": 1.5, "period": 40.0},
+                                 "env": {"ring_length": 260.0}},
+        "sine_14_p45": {"profile": "sine", "kwargs": {"v_star": 14.0, "amplitude": 2.5, "period": 45.0}},
+        "ramps_3_9_ring_300": {"profile": "random_ramps", "kwargs": {"v_low": 3.0, "v_high": 9.0},
+                               "env": {"ring_length": 300.0}},
+        "ramps_11_19": {"profile": "random_ramps", "kwargs": {"v_low": 11.0, "v_high": 19.0}},
+        "perturbation_16_ring_280": {"profile": "random_perturbation", "kwargs": {"v_star": 16.0, "amplitude": 2.0,
+                                                                                  "period": 7.0},
+                                     "env": {"ring_length": 280.0}},
+        "steps_8_18_humans_25pct": {"profile": "random_steps", "kwargs": {"v_low": 8.0, "v_high": 18.0, "period": 17.0,
+                                                                          "v_init": 12.0},
+                                    "eval": {"hdv_param_noise": 0.25}},
+        "random_stops_slow_quick": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 6.0, "v_high": 14.0, "hold_min": 6.0, "hold_max": 14.0, "stop_min": 3.0, "stop_max": 8.0,
+            "rate_min": 1.0, "rate_max": 2.0}},
+        "brake_from_19_late": {"profile": "emergency_brake", "kwargs": {"start": 115.0, "v_cruise": 19.0, "v_low": 0.0}},
+        "ramps_20_25": {"profile": "random_ramps", "kwargs": {"v_low": 20.0, "v_high": 25.0}},
     }
 
 
@@ -528,11 +561,14 @@ FRESH_12 = ("sine_17_p45_ring_290", "sine_13_p35", "ramps_5_11_ring_260", "ramps
             "steps_9_19", "random_stops_long_holds", "brake_from_17_late_ring_330", "sine_23_p60")
 FRESH_13 = ("sine_16_p50_ring_300", "sine_11_p45", "ramps_4_10", "ramps_8_16_ring_280", "perturbation_15_humans_20pct",
             "steps_6_16_ring_250", "random_stops_quick", "brake_from_16_late_ring_270", "steps_20_25")
+FRESH_14 = ("sine_17_p40_ring_260", "sine_14_p45", "ramps_3_9_ring_300", "ramps_11_19", "perturbation_16_ring_280",
+            "steps_8_18_humans_25pct", "random_stops_slow_quick", "brake_from_19_late", "ramps_20_25")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
-          "fresh_12": FRESH_12, "fresh_13": FRESH_13, "training": TRAINING}
+          "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
+          "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
