@@ -277,7 +277,10 @@ class JoinConfig:
     or null) the join law's part grows linearly with the leader's speed between the two, so the policy drives a
     join behind a slow leader (:class:`transforms.JoinBlend`, placed between the safety layer and the residual). A
     CAV that starts at or below ``gap`` is driven by the policy from the start. ``when``: ``deploy`` (only where the policy is evaluated or
-    deployed, as ``catch_up.when``) or ``always``. ``base`` null (the default): off.
+    deployed, as ``catch_up.when``) or ``always``. ``base`` null (the default): off. ``fast_params`` with
+    ``fast_leader_speeds`` (``[v1, v2]`` m/s): behind a leader at or above ``v2`` the join law is ``base`` with
+    ``params`` updated by ``fast_params``, at or below ``v1`` with ``params`` alone, blended linearly between
+    (:class:`mixed_traffic.controllers.classic.SpeedScheduledCAV` on the leader's speed); both null: one law.
     """
 
     base: str | None = None  # "idm", "ovm", "soft" or "cacc"; null: off
@@ -287,6 +290,8 @@ class JoinConfig:
     seconds: float | None = None  # s: the handover begins at the latest at this episode time; null: only at gap
     leader_speeds: Any = None  # [v_off, v_on] (m/s): the join law's part grows with the leader's speed; null: all
     when: str = "deploy"  # "always" or "deploy"
+    fast_params: Any = None  # params' overrides behind a fast leader (with fast_leader_speeds); null: one law
+    fast_leader_speeds: Any = None  # [v1, v2] (m/s): params alone at or below v1, with fast_params at or above v2
 
 
 @dataclass

@@ -280,9 +280,9 @@ def _check_ordered_pair(cfg: DictConfig, path: str, allowed: str) -> None:
         raise ConfigError(path, repr(pair), allowed)
 
 
-def _check_classic_params(cfg: DictConfig, prefix: str) -> None:
-    """``PREFIX.params`` name parameters of the classical model ``PREFIX.base`` and are numbers."""
-    params = OmegaConf.select(cfg, f"{prefix}.params", default=None)
+def _check_classic_params(cfg: DictConfig, prefix: str, key: str = "params") -> None:
+    """``PREFIX.KEY`` (default ``params``) name parameters of the classical model ``PREFIX.base`` and are numbers."""
+    params = OmegaConf.select(cfg, f"{prefix}.{key}", default=None)
     if params:
         from mixed_traffic.controllers.classic import classic_parameters
 
@@ -292,8 +292,8 @@ def _check_classic_params(cfg: DictConfig, prefix: str) -> None:
             if v is None:  # null: no override (an experiment over an IDM base nulls gap_max to switch base)
                 continue
             if k not in allowed:
-                raise ConfigError(f"{prefix}.params.{k}", f"is not a {model} parameter", str(allowed))
-            Real()(f"{prefix}.params.{k}", v)
+                raise ConfigError(f"{prefix}.{key}.{k}", f"is not a {model} parameter", str(allowed))
+            Real()(f"{prefix}.{key}.{k}", v)
 
 
 def parse_deploy_overrides(items) -> list[tuple[str, object]]:
@@ -376,6 +376,14 @@ def validate_config(cfg: DictConfig) -> DictConfig:
         _check_classic_params(cfg, "transforms.residual.join")
         _check_ordered_pair(cfg, "transforms.residual.join.leader_speeds",
                             "[v_off, v_on] with 0 <= v_off < v_on (m/s), or null")
+        _check_classic_params(cfg, "transforms.residual.join", "fast_params")
+        _check_ordered_pair(cfg, "transforms.residual.join.fast_leader_speeds",
+                            "[v1, v2] with 0 <= v1 < v2 (m/s), or null")
+        fast = [OmegaConf.select(cfg, f"transforms.residual.join.{k}", default=None)
+                for k in ("fast_params", "fast_leader_speeds")]
+        if (fast[0] is None) != (fast[1] is None):
+            raise ConfigError("transforms.residual.join.fast_leader_speeds", repr(fast[1]),
+                              "set together with transforms.residual.join.fast_params (both, or both null)")
     _check_ordered_pair(cfg, "transforms.residual.fade_speeds", "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
     for field, needs, allowed in (  # a setting of another that must be on
             ("arrive_gain", "stop_gap", "null, or a gain (1/s^2, > 0) with a stop_gap (the envelope it arrives at)"),

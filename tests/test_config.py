@@ -485,12 +485,24 @@ def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law()
         assert_differs_only_in(cfg, ref, {"transforms.residual.join": ANY, "transforms.residual.params": ANY})
 
 
-def test_default_experiment_is_the_gentle_join_with_fewer_analytic_gradient_steps():
-    """``experiment=ring_lagrangian_ppo_apg60`` (the default, ``mt-main``) is ``ring_lagrangian_ppo_gentle_join`` with
-    60 analytic-gradient steps, the last 50 averaged, and nothing else changed."""
+def test_default_experiment_is_apg60_with_a_join_paced_by_the_leaders_speed_and_trains_apg60s_weights():
+    """``experiment=ring_lagrangian_ppo_paced_join`` (the default, ``mt-main``) is ``ring_lagrangian_ppo_apg60`` with
+    the join law's settings changed and nothing else; the join is deploy-only, so the chain it trains is apg60's."""
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_apg60"
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_paced_join"
+    apg60, paced = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "paced_join"))
+    assert paced.transforms.residual.join.when == "deploy"
+    assert_differs_only_in(paced, apg60, {"transforms.residual.join.params.v0": 40.0,
+                                          "transforms.residual.join.params.gap_max": None,
+                                          "transforms.residual.join.fast_params": {"v0": 60.0, "gap_max": 27.0},
+                                          "transforms.residual.join.fast_leader_speeds": [19.0, 21.0]})
+
+
+def test_apg60_is_the_gentle_join_with_fewer_analytic_gradient_steps():
+    """``experiment=ring_lagrangian_ppo_apg60`` (the default before ``ring_lagrangian_ppo_paced_join``, whose weights
+    it trains) is ``ring_lagrangian_ppo_gentle_join`` with 60 analytic-gradient steps, the last 50 averaged, and
+    nothing else changed."""
     join, short = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("gentle_join", "apg60"))
     assert (join.policy.apg.iterations, join.policy.apg.average_last) == (100, 90)
     assert_differs_only_in(short, join, {"policy.apg.iterations": 60, "policy.apg.average_last": 50})

@@ -183,3 +183,44 @@ def test_idm_join_joins_under_idm_cavs_own_law_where_the_capped_law_brakes_later
     joined, capped = command(idm_join), command(apg60)
     torch.testing.assert_close(joined, command(None, idm_cav))
     assert bool((capped > joined + 0.05).all()), (capped, joined)
+
+
+def test_paced_join_schedules_the_join_law_on_the_leaders_speed():
+    """``experiment=ring_lagrangian_ppo_paced_join`` is ``ring_lagrangian_ppo_idm_join`` with ``fast_params`` and
+    ``fast_leader_speeds`` [19, 21]: behind a leader at or below 19 m/s its join law commands IDM_cav's acceleration,
+    behind one at or above 21 m/s the default's capped law's, and the average of the two at 20 m/s, whatever the
+    CAV's own speed (it is the leader's speed that picks the law)."""
+    from mixed_traffic.training.builders import join_blend
+    from tests.test_config import assert_differs_only_in
+
+    apg60, idm_join, paced = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"]))
+                              for n in ("apg60", "idm_join", "paced_join"))
+    assert_differs_only_in(paced, idm_join, {"transforms.residual.join.fast_params": {"v0": 60.0, "gap_max": 27.0},
+                                             "transforms.residual.join.fast_leader_speeds": [19.0, 21.0]})
+    env = make_env("ring", batch_size=3, seed=0)
+    td = env.reset()
+    td["cav", "gap"], td["cav", "speed"] = torch.full((3, 1), 60.0), torch.full((3, 1), 24.0)
+    td["cav", "leader_speed"] = torch.tensor([[18.0], [20.0], [22.0]])
+
+    def command(cfg):
+        law = join_blend(cfg.transforms.residual, env).law
+        return law(td.clone())[law.out_keys[0]][:, 0]
+
+    slow, capped, mixed = command(idm_join), command(apg60), command(paced)
+    assert bool((capped - slow).abs().min() > 0.05), (capped, slow)  # the two laws differ at these states
+    torch.testing.assert_close(mixed[0], slow[0])
+    torch.testing.assert_close(mixed[2], capped[2])
+    torch.testing.assert_close(mixed[1], 0.5 * (slow[1] + capped[1]))
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (["+transforms.residual.join.fast_params.v00=60.0", "transforms.residual.join.fast_leader_speeds=[19.0,21.0]"],
+     r"transforms.residual.join.fast_params.v00: is not a idm parameter"),
+    (["+transforms.residual.join.fast_params.v0=60.0"],
+     r"transforms.residual.join.fast_leader_speeds: None.*set together with transforms.residual.join.fast_params"),
+    (["+transforms.residual.join.fast_params.v0=60.0", "transforms.residual.join.fast_leader_speeds=[21.0,19.0]"],
+     r"transforms.residual.join.fast_leader_speeds: \[21.0, 19.0\].*0 <= v1 < v2"),
+])
+def test_a_bad_fast_join_law_fails_at_start_up_naming_the_field(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(compose(["experiment=ring_lagrangian_ppo_idm_join", *overrides]))

@@ -478,6 +478,13 @@ def test_speed_scheduled_base_is_each_law_outside_its_band_and_their_blend_insid
     assert torch.allclose(sched(gap, v, lead), want, atol=1e-6)
     with pytest.raises(ValueError, match="v_low"):
         speed_scheduled_policy(soft, idm, 16.0, 10.0)
+    # on the leader's speed: the same weights, read from the leader (13 m/s ahead of every car: the blend for all)
+    on_lead = speed_scheduled_policy(soft, idm, 10.0, 16.0, on="leader_speed").module
+    lead13 = torch.full_like(v, 13.0)
+    assert torch.allclose(on_lead(gap, v, lead13), 0.5 * (soft.module(gap, v, lead13) + idm.module(gap, v, lead13)),
+                          atol=1e-6)
+    with pytest.raises(ValueError, match=r"on = 'gap' is invalid; allowed: 'speed', 'leader_speed'"):
+        speed_scheduled_policy(soft, idm, 10.0, 16.0, on="gap")
 
 
 def test_speed_scheduled_base_drives_the_ring_without_a_layer_across_its_blend():

@@ -132,30 +132,36 @@ class SpeedScheduledCAV(nn.Module):
     Gain scheduling by speed, the classical way of joining two controllers that each hold only over part
     of the speed range (a follower that lets the gap float at low speed, one that keeps it short at high
     speed). A convex blend, so with both laws clipped to the same bounds the blend stays within them.
-    TorchRL has no such module.
+    ``on="leader_speed"`` schedules on the leader's speed instead of the car's own (a law chosen by how fast the
+    traffic ahead drives, not by how fast the car happens to be going while it catches up). TorchRL has no such
+    module.
     """
 
-    def __init__(self, low: nn.Module, high: nn.Module, v_low: float, v_high: float):
+    def __init__(self, low: nn.Module, high: nn.Module, v_low: float, v_high: float, on: str = "speed"):
         super().__init__()
         if not 0.0 <= v_low < v_high:
             raise ValueError(f"speed schedule v_low = {v_low}, v_high = {v_high} is invalid; "
                              "allowed: 0 <= v_low < v_high (m/s)")
+        if on not in ("speed", "leader_speed"):
+            raise ValueError(f"speed schedule on = {on!r} is invalid; allowed: 'speed', 'leader_speed'")
         self.low, self.high = low, high
-        self.v_low, self.v_high = float(v_low), float(v_high)
+        self.v_low, self.v_high, self.on = float(v_low), float(v_high), on
 
     @property
     def reads_leader_accel(self) -> bool:
         return reads_leader_accel(self.low) or reads_leader_accel(self.high)
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
-        w = ((self.v_high - speed) / (self.v_high - self.v_low)).clamp(0.0, 1.0)
+        v = speed if self.on == "speed" else leader_speed
+        w = ((self.v_high - v) / (self.v_high - self.v_low)).clamp(0.0, 1.0)
         return w * self.low(gap, speed, leader_speed, *extra) + (1.0 - w) * self.high(gap, speed, leader_speed, *extra)
 
 
 def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low: float,
-                           v_high: float) -> TensorDictModule:
+                           v_high: float, on: str = "speed") -> TensorDictModule:
     """Two policies of :func:`make_classic_policy` joined by speed (:class:`SpeedScheduledCAV`): ``low``
-    drives below ``v_low``, ``high`` above ``v_high``, a linear blend between.
+    drives below ``v_low``, ``high`` above ``v_high``, a linear blend between; ``on="leader_speed"``: by the
+    leader's speed.
 
     >>> from mixed_traffic import make_env
     >>> from mixed_traffic.physics import SOFT_SCALED
@@ -166,7 +172,7 @@ def speed_scheduled_policy(low: TensorDictModule, high: TensorDictModule, v_low:
     False
     """
     in_keys = list(low.in_keys) + [k for k in high.in_keys if k not in low.in_keys]  # CACC adds leader_accel
-    return TensorDictModule(SpeedScheduledCAV(low.module, high.module, v_low, v_high),
+    return TensorDictModule(SpeedScheduledCAV(low.module, high.module, v_low, v_high, on=on),
                             in_keys=in_keys, out_keys=list(low.out_keys))
 
 

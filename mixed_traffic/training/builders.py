@@ -248,15 +248,22 @@ def drive_off_cap(rcfg, env):
 def join_blend(rcfg, env, *, deploy: bool = True):
     """The :class:`transforms.JoinBlend` of ``transforms.residual.join`` (``rcfg``: the ``residual`` node) for ``env``,
     or None when its ``base`` is null (off) or it is deploy-only and ``deploy`` is False. The join law runs inside
-    the stopping envelope of the base's ``stop_gap`` (5 m where the base has none)."""
-    from mixed_traffic.controllers.classic import make_classic_policy, stopping_envelope_policy
+    the stopping envelope of the base's ``stop_gap`` (5 m where the base has none); with ``fast_params`` it is
+    scheduled on the leader's speed over ``fast_leader_speeds``."""
+    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
     from transforms import JoinBlend
 
     j = rcfg.get("join")
     if j is None or j.get("base") is None or not (deploy or j.get("when", "deploy") == "always"):
         return None
-    params = {k: v for k, v in dict(j.get("params") or {}).items() if v is not None}
-    law = stopping_envelope_policy(make_classic_policy(j.base, env, **params), env, envelope_stop_gap(rcfg))
+    raw = dict(j.get("params") or {})
+    params = {k: v for k, v in raw.items() if v is not None}
+    law = make_classic_policy(j.base, env, **params)
+    if j.get("fast_params") is not None:
+        fast = {k: v for k, v in {**raw, **dict(j.fast_params)}.items() if v is not None}
+        v1, v2 = (float(v) for v in j.fast_leader_speeds)
+        law = speed_scheduled_policy(law, make_classic_policy(j.base, env, **fast), v1, v2, on="leader_speed")
+    law = stopping_envelope_policy(law, env, envelope_stop_gap(rcfg))
     seconds = j.get("seconds")
     speeds = j.get("leader_speeds")
     return JoinBlend(law, gap=float(j.gap), fade=float(j.fade), seconds=None if seconds is None else float(seconds),
