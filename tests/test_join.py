@@ -157,31 +157,40 @@ def test_join_is_cap_hold_with_the_deployed_join_and_nothing_else():
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
 
+
+def _cav_state(env, gap, speed, leader_speed):
+    """A reset tensordict of ``env`` with the CAV's gap, speed and leader speed set (``[batch, 1]`` each)."""
+    td = env.reset()
+    td["cav", "gap"], td["cav", "speed"], td["cav", "leader_speed"] = gap, speed, leader_speed
+    return td
+
+
+def _command(law, td):
+    """``law``'s acceleration at ``td`` (on a copy), ``[batch, 1]``."""
+    return law(td.clone())[law.out_keys[0]]
+
+
+def _deployed_join_law(cfg, env):
+    from mixed_traffic.training.builders import join_blend
+
+    return join_blend(cfg.transforms.residual, env).law
+
 def test_idm_join_joins_under_idm_cavs_own_law_where_the_capped_law_brakes_later():
     """``experiment=ring_lagrangian_ppo_idm_join`` (tried, not the default) is ``ring_lagrangian_ppo_apg60`` whose
     deployed join law is IDM_cav (s0 7 m, v0 40 m/s, b 2 m/s^2, T 1 s, no headway cap): its command equals IDM_cav's
     wherever the stopping envelope leaves it alone. In the long start's overshoot (the CAV faster than its leader,
     still far behind) the default's law (v0 60 m/s, headway capped at a 27-m steady gap) wants a smaller gap and more
     speed, so it brakes later."""
-    from mixed_traffic.training.builders import join_blend
     from tests.test_config import assert_differs_only_in
 
     apg60, idm_join = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"])) for n in ("apg60", "idm_join"))
     assert_differs_only_in(idm_join, apg60, {"transforms.residual.join.params.v0": 40.0,
                                              "transforms.residual.join.params.gap_max": None})
     env = make_env("ring", batch_size=4, seed=0)
-    gap, speed, leader = (torch.tensor([[60.0], [45.0], [30.0], [24.0]]), torch.tensor([[22.0], [21.0], [19.0], [17.0]]),
-                          torch.tensor([[17.0], [17.0], [17.0], [16.0]]))
-    td = env.reset()
-    td["cav", "gap"], td["cav", "speed"], td["cav", "leader_speed"] = gap, speed, leader
-
-    def command(cfg, law=None):
-        law = law or join_blend(cfg.transforms.residual, env).law
-        return law(td.clone())[law.out_keys[0]]
-
-    idm_cav = make_classic_policy("idm", env, s0=7.0, v0=40.0, b=2.0)
-    joined, capped = command(idm_join), command(apg60)
-    torch.testing.assert_close(joined, command(None, idm_cav))
+    td = _cav_state(env, torch.tensor([[60.0], [45.0], [30.0], [24.0]]), torch.tensor([[22.0], [21.0], [19.0], [17.0]]),
+                    torch.tensor([[17.0], [17.0], [17.0], [16.0]]))
+    joined, capped = (_command(_deployed_join_law(cfg, env), td) for cfg in (idm_join, apg60))
+    torch.testing.assert_close(joined, _command(make_classic_policy("idm", env, s0=7.0, v0=40.0, b=2.0), td))
     assert bool((capped > joined + 0.05).all()), (capped, joined)
 
 
@@ -190,7 +199,6 @@ def test_paced_join_schedules_the_join_law_on_the_leaders_speed():
     ``fast_leader_speeds`` [19, 21]: behind a leader at or below 19 m/s its join law commands IDM_cav's acceleration,
     behind one at or above 21 m/s the default's capped law's, and the average of the two at 20 m/s, whatever the
     CAV's own speed (it is the leader's speed that picks the law)."""
-    from mixed_traffic.training.builders import join_blend
     from tests.test_config import assert_differs_only_in
 
     apg60, idm_join, paced = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"]))
@@ -198,15 +206,8 @@ def test_paced_join_schedules_the_join_law_on_the_leaders_speed():
     assert_differs_only_in(paced, idm_join, {"transforms.residual.join.fast_params": {"v0": 60.0, "gap_max": 27.0},
                                              "transforms.residual.join.fast_leader_speeds": [19.0, 21.0]})
     env = make_env("ring", batch_size=3, seed=0)
-    td = env.reset()
-    td["cav", "gap"], td["cav", "speed"] = torch.full((3, 1), 60.0), torch.full((3, 1), 24.0)
-    td["cav", "leader_speed"] = torch.tensor([[18.0], [20.0], [22.0]])
-
-    def command(cfg):
-        law = join_blend(cfg.transforms.residual, env).law
-        return law(td.clone())[law.out_keys[0]][:, 0]
-
-    slow, capped, mixed = command(idm_join), command(apg60), command(paced)
+    td = _cav_state(env, torch.full((3, 1), 60.0), torch.full((3, 1), 24.0), torch.tensor([[18.0], [20.0], [22.0]]))
+    slow, capped, mixed = (_command(_deployed_join_law(cfg, env), td)[:, 0] for cfg in (idm_join, apg60, paced))
     assert bool((capped - slow).abs().min() > 0.05), (capped, slow)  # the two laws differ at these states
     torch.testing.assert_close(mixed[0], slow[0])
     torch.testing.assert_close(mixed[2], capped[2])
