@@ -227,6 +227,20 @@ out-of-sample set, the test of any change made after fresh_13; the same mix:
 - ``brake_from_19_late``: ``emergency_brake`` from 19 m/s down to 0 m/s at 115 s;
 - ``ramps_20_25``: ``random_ramps`` at 20-25 m/s, above the training range.
 
+Nine more (``--cases fresh_15``), fixed after fresh_14 was scored and before anything ran on them: an eighth
+out-of-sample set, the test of any change made after fresh_14; the same mix:
+
+- ``sine_15_p45_ring_250``: ``sine`` at 15 +- 2 m/s, period 45 s, on a 250 m ring;
+- ``sine_13_p40``: ``sine`` at 13 +- 3 m/s, period 40 s;
+- ``ramps_5_12_ring_270``: ``random_ramps`` at 5-12 m/s on a 270 m ring;
+- ``ramps_10_17_humans_20pct``: ``random_ramps`` at 10-17 m/s with the humans' parameters spread +-20 %;
+- ``perturbation_17_p9``: ``random_perturbation`` around 17 m/s, +-2 m/s knots every 9 s;
+- ``steps_7_17_ring_300``: ``random_steps`` at 7-17 m/s, period 18 s, on a 300 m ring;
+- ``random_stops_long_quick``: ``random_stop_and_go`` with holds of 10-20 s at 8-16 m/s, stands of 2-5 s, braking
+  and driving off at 1.2-2.2 m/s^2;
+- ``brake_from_18_late_ring_280``: ``emergency_brake`` from 18 m/s down to 0 m/s at 120 s, on a 280 m ring;
+- ``sine_21_p45``: ``sine`` at 21.5 +- 2 m/s, period 45 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -530,6 +544,27 @@ def cases(seconds: float) -> dict[str, dict]:
             "rate_min": 1.0, "rate_max": 2.0}},
         "brake_from_19_late": {"profile": "emergency_brake", "kwargs": {"start": 115.0, "v_cruise": 19.0, "v_low": 0.0}},
         "ramps_20_25": {"profile": "random_ramps", "kwargs": {"v_low": 20.0, "v_high": 25.0}},
+        # fresh_15: fixed on 2026-12-01 after fresh_14 was scored, before anything ran on them: an eighth out-of-sample
+        # set, and the test of any change made after fresh_14
+        "sine_15_p45_ring_250": {"profile": "sine", "kwargs": {"v_star": 15.0, "amplitude": 2.0, "period": 45.0},
+                                 "env": {"ring_length": 250.0}},
+        "sine_13_p40": {"profile": "sine", "kwargs": {"v_star": 13.0, "amplitude": 3.0, "period": 40.0}},
+        "ramps_5_12_ring_270": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 12.0},
+                                "env": {"ring_length": 270.0}},
+        "ramps_10_17_humans_20pct": {"profile": "random_ramps", "kwargs": {"v_low": 10.0, "v_high": 17.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
+        "perturbation_17_p9": {"profile": "random_perturbation", "kwargs": {"v_star": 17.0, "amplitude": 2.0,
+                                                                            "period": 9.0}},
+        "steps_7_17_ring_300": {"profile": "random_steps", "kwargs": {"v_low": 7.0, "v_high": 17.0, "period": 18.0,
+                                                                      "v_init": 10.0},
+                                "env": {"ring_length": 300.0}},
+        "random_stops_long_quick": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 16.0, "hold_min": 10.0, "hold_max": 20.0, "stop_min": 2.0, "stop_max": 5.0,
+            "rate_min": 1.2, "rate_max": 2.2}},
+        "brake_from_18_late_ring_280": {"profile": "emergency_brake", "kwargs": {"start": 120.0, "v_cruise": 18.0,
+                                                                                 "v_low": 0.0},
+                                        "env": {"ring_length": 280.0}},
+        "sine_21_p45": {"profile": "sine", "kwargs": {"v_star": 21.5, "amplitude": 2.0, "period": 45.0}},
     }
 
 
@@ -563,12 +598,14 @@ FRESH_13 = ("sine_16_p50_ring_300", "sine_11_p45", "ramps_4_10", "ramps_8_16_rin
             "steps_6_16_ring_250", "random_stops_quick", "brake_from_16_late_ring_270", "steps_20_25")
 FRESH_14 = ("sine_17_p40_ring_260", "sine_14_p45", "ramps_3_9_ring_300", "ramps_11_19", "perturbation_16_ring_280",
             "steps_8_18_humans_25pct", "random_stops_slow_quick", "brake_from_19_late", "ramps_20_25")
+FRESH_15 = ("sine_15_p45_ring_250", "sine_13_p40", "ramps_5_12_ring_270", "ramps_10_17_humans_20pct", "perturbation_17_p9",
+            "steps_7_17_ring_300", "random_stops_long_quick", "brake_from_18_late_ring_280", "sine_21_p45")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
-          "training": TRAINING}
+          "fresh_15": FRESH_15, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
