@@ -76,14 +76,20 @@ def test_idm_deeplcc_parameter_set():
     assert acc.item() == pytest.approx(1.0, abs=1e-6)
 
 
-def _steady_gap(v: torch.Tensor, **params) -> torch.Tensor:
-    """The gap at which IDM holds speed ``v`` behind a leader at ``v`` (bisection on a = 0)."""
-    lo, hi = torch.full_like(v, 0.1), torch.full_like(v, 500.0)
+def _gap_of_no_command(accel, v: torch.Tensor, lo: float = 0.1, hi: float = 500.0) -> torch.Tensor:
+    """Per speed ``v``, the gap at which ``accel(gap)`` (a law behind a leader at ``v``, whose command rises with the
+    gap) is zero: where the law holds its speed (bisection)."""
+    lo, hi = torch.full_like(v, lo), torch.full_like(v, hi)
     for _ in range(80):
         mid = 0.5 * (lo + hi)
-        pulls = idm_accel(mid, v, v, **params) > 0  # gap too large: IDM speeds up
+        pulls = accel(mid) > 0  # gap too large: the law speeds up
         hi, lo = torch.where(pulls, mid, hi), torch.where(pulls, lo, mid)
     return 0.5 * (lo + hi)
+
+
+def _steady_gap(v: torch.Tensor, **params) -> torch.Tensor:
+    """The gap at which IDM holds speed ``v`` behind a leader at ``v``."""
+    return _gap_of_no_command(lambda gap: idm_accel(gap, v, v, **params), v)
 
 
 def test_idm_gap_max_bounds_the_steady_gap_and_is_idm_below_it():
@@ -603,3 +609,42 @@ def test_the_brake_floor_experiment_reads_the_leaders_acceleration_and_drives_th
                        ("transforms.residual.high_speed.brake_margin=-0.1", "brake_margin")):
         with pytest.raises(ConfigError, match=rf"transforms\.residual\.high_speed\.{field}"):
             validate_config(compose(["experiment=ring_lagrangian_ppo_brake_floor", bad]))
+
+
+def _base_steady_gap(base, speeds) -> list[float]:
+    """Per speed, the gap at which ``base`` (a ring base module reading the leader's acceleration, here 0) holds it
+    behind a leader at that speed."""
+    v = torch.tensor(speeds, dtype=torch.float32)
+    return _gap_of_no_command(lambda gap: base(gap, v, v, torch.zeros_like(v)), v, lo=5.0, hi=40.0).tolist()
+
+
+def test_near_gap_base_parks_near_the_rewards_gap_at_16_m_s_and_its_laws_agree_where_they_hand_over():
+    """``experiment=ring_lagrangian_ppo_near_gap``: the paced join's experiment with the high-speed IDM's standstill
+    gap at 3.5 m and the humans' desired speed (uncapped), and the soft law's standstill gap at 5 m. Its base, as it
+    trains, holds a leader at 16 m/s at 20.3 m (the capped IDM of before: 23 m; the reward prices the distance
+    from 20 m), the steady gap grows by more than 1 m every 2 m/s through the handover at 10-16 m/s, and at 10 m/s the soft law
+    below and the IDM above want the same gap within 0.3 m."""
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.controllers.classic import make_classic_policy
+    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.validation import validate_config
+    from tests.test_config import assert_differs_only_in
+
+    near, paced = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"])) for n in ("near_gap", "paced_join"))
+    assert_differs_only_in(near, paced, {"transforms.residual.params.s0": 5.0,
+                                         "transforms.residual.high_speed.params.s0": 3.5,
+                                         "transforms.residual.high_speed.params.v0": 30.0,
+                                         "transforms.residual.high_speed.params.gap_max": None})
+    env = make_env("ring", batch_size=1, seed=0)
+    new, old = (residual_base(c.transforms.residual, env, deploy=False).module for c in (near, paced))
+    assert _base_steady_gap(new, [16.0])[0] == pytest.approx(20.3, abs=0.2)
+    assert _base_steady_gap(old, [16.0])[0] > 22.5
+    gaps = _base_steady_gap(new, [6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 17.0])
+    assert all(b > a + 1.0 for a, b in zip(gaps, gaps[1:])), gaps  # no flat stretch (the old base: +0.7 m at 10-12)
+    r = near.transforms.residual
+    soft = make_classic_policy(r.base, env, **{k: v for k, v in r.params.items() if v is not None}).module
+    idm = make_classic_policy(r.high_speed.base, env, **{k: v for k, v in r.high_speed.params.items()
+                                                         if v is not None}).module
+    assert _base_steady_gap(lambda g, s, lv, a: soft(g, s, lv), [10.0])[0] == pytest.approx(
+        _base_steady_gap(lambda g, s, lv, a: idm(g, s, lv), [10.0])[0], abs=0.3)
