@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from mixed_traffic.config import compose
-from mixed_traffic.controllers.classic import StoppingEnvelope, make_classic_policy
+from mixed_traffic.controllers.classic import StoppingEnvelope
 from mixed_traffic.physics import integrate
-from mixed_traffic.training.builders import make_transformed_env
+from mixed_traffic.training.builders import classic_law, make_transformed_env
 from mixed_traffic.validation import ConfigError, validate_config
 
 GENTLE = "experiment=ring_lagrangian_ppo_gentle"
@@ -19,8 +19,7 @@ GENTLE = "experiment=ring_lagrangian_ppo_gentle"
 
 def _gentle_law():
     """The soft law of ``experiment=ring_lagrangian_ppo_gentle``'s base below 10 m/s, unclipped."""
-    params = {k: v for k, v in dict(compose([GENTLE]).transforms.residual.params).items() if v is not None}
-    return make_classic_policy("soft", low=-math.inf, high=math.inf, **params).module
+    return classic_law("soft", compose([GENTLE]).transforms.residual.params, None, low=-math.inf, high=math.inf).module
 
 
 def _stop(arrive_gain, gap0: float, v0: float, steps: int = 60):

@@ -156,8 +156,6 @@ def test_join_is_cap_hold_with_the_deployed_join_and_nothing_else():
         d.transforms.residual.join, d.name = prev.transforms.residual.join, prev.name
     assert OmegaConf.to_container(d) == OmegaConf.to_container(prev)
 
-
-
 def _cav_state(env, gap, speed, leader_speed):
     """A reset tensordict of ``env`` with the CAV's gap, speed and leader speed set (``[batch, 1]`` each)."""
     td = env.reset()
@@ -174,6 +172,7 @@ def _deployed_join_law(cfg, env):
     from mixed_traffic.training.builders import join_blend
 
     return join_blend(cfg.transforms.residual, env).law
+
 
 def test_idm_join_joins_under_idm_cavs_own_law_where_the_capped_law_brakes_later():
     """``experiment=ring_lagrangian_ppo_idm_join`` (tried, not the default) is ``ring_lagrangian_ppo_apg60`` whose

@@ -626,8 +626,7 @@ def test_near_gap_base_parks_near_the_rewards_gap_at_16_m_s_and_its_laws_agree_w
     below and the IDM above want the same gap within 0.3 m."""
     from mixed_traffic import make_env
     from mixed_traffic.config import compose
-    from mixed_traffic.controllers.classic import make_classic_policy
-    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.training.builders import classic_law, residual_base
     from mixed_traffic.validation import validate_config
     from tests.test_config import assert_differs_only_in
 
@@ -643,8 +642,7 @@ def test_near_gap_base_parks_near_the_rewards_gap_at_16_m_s_and_its_laws_agree_w
     gaps = _base_steady_gap(new, [6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 17.0])
     assert all(b > a + 1.0 for a, b in zip(gaps, gaps[1:])), gaps  # no flat stretch (the old base: +0.7 m at 10-12)
     r = near.transforms.residual
-    soft = make_classic_policy(r.base, env, **{k: v for k, v in r.params.items() if v is not None}).module
-    idm = make_classic_policy(r.high_speed.base, env, **{k: v for k, v in r.high_speed.params.items()
-                                                         if v is not None}).module
+    soft = classic_law(r.base, r.params, env).module
+    idm = classic_law(r.high_speed.base, r.high_speed.params, env).module
     assert _base_steady_gap(lambda g, s, lv, a: soft(g, s, lv), [10.0])[0] == pytest.approx(
         _base_steady_gap(lambda g, s, lv, a: idm(g, s, lv), [10.0])[0], abs=0.3)

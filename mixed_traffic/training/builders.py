@@ -245,24 +245,31 @@ def drive_off_cap(rcfg, env):
                        follow_above=d.get("follow_above", 0.3), guard=guard, hold=bool(d.get("hold", False)))
 
 
+def classic_law(base: str, params, env, **bounds):
+    """The classical law ``base`` (:func:`mixed_traffic.controllers.classic.make_classic_policy`) for ``env`` with a
+    config node's ``params``; a null parameter is left to the model (an experiment nulls one to undo an override)."""
+    from mixed_traffic.controllers.classic import make_classic_policy
+
+    return make_classic_policy(base, env, **bounds, **{k: v for k, v in dict(params or {}).items() if v is not None})
+
+
 def join_blend(rcfg, env, *, deploy: bool = True):
     """The :class:`transforms.JoinBlend` of ``transforms.residual.join`` (``rcfg``: the ``residual`` node) for ``env``,
     or None when its ``base`` is null (off) or it is deploy-only and ``deploy`` is False. The join law runs inside
     the stopping envelope of the base's ``stop_gap`` (5 m where the base has none); with ``fast_params`` it is
     scheduled on the leader's speed over ``fast_leader_speeds``."""
-    from mixed_traffic.controllers.classic import make_classic_policy, speed_scheduled_policy, stopping_envelope_policy
+    from mixed_traffic.controllers.classic import speed_scheduled_policy, stopping_envelope_policy
     from transforms import JoinBlend
 
     j = rcfg.get("join")
     if j is None or j.get("base") is None or not (deploy or j.get("when", "deploy") == "always"):
         return None
-    raw = dict(j.get("params") or {})
-    params = {k: v for k, v in raw.items() if v is not None}
-    law = make_classic_policy(j.base, env, **params)
+    params = dict(j.get("params") or {})
+    law = classic_law(j.base, params, env)
     if j.get("fast_params") is not None:
-        fast = {k: v for k, v in {**raw, **dict(j.fast_params)}.items() if v is not None}
         v1, v2 = (float(v) for v in j.fast_leader_speeds)
-        law = speed_scheduled_policy(law, make_classic_policy(j.base, env, **fast), v1, v2, on="leader_speed")
+        fast = classic_law(j.base, {**params, **dict(j.fast_params)}, env)
+        law = speed_scheduled_policy(law, fast, v1, v2, on="leader_speed")
     law = stopping_envelope_policy(law, env, envelope_stop_gap(rcfg))
     seconds = j.get("seconds")
     speeds = j.get("leader_speeds")
@@ -318,7 +325,6 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     from mixed_traffic.controllers.classic import (
         catch_up_policy,
         leader_brake_floor_policy,
-        make_classic_policy,
         speed_scheduled_policy,
         stopping_envelope_policy,
     )
@@ -326,8 +332,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     bounds = {} if saturate else {"low": -math.inf, "high": math.inf}
 
     def law(node):
-        params = {k: v for k, v in dict(node.get("params") or {}).items() if v is not None}
-        return make_classic_policy(node.base, env, **bounds, **params)
+        return classic_law(node.base, node.get("params"), env, **bounds)
 
     base = law(rcfg)
     for key in SPEED_LAWS:
