@@ -241,6 +241,21 @@ out-of-sample set, the test of any change made after fresh_14; the same mix:
 - ``brake_from_18_late_ring_280``: ``emergency_brake`` from 18 m/s down to 0 m/s at 120 s, on a 280 m ring;
 - ``sine_21_p45``: ``sine`` at 21.5 +- 2 m/s, period 45 s, above the training range.
 
+Nine more (``--cases fresh_16``), fixed after fresh_15 was scored and before anything ran on them: a ninth
+out-of-sample set, the test of any change made after fresh_15; the same mix:
+
+- ``sine_14_p50_ring_270``: ``sine`` at 14 +- 2.5 m/s, period 50 s, on a 270 m ring;
+- ``sine_12_p35``: ``sine`` at 12 +- 2 m/s, period 35 s;
+- ``ramps_4_13``: ``random_ramps`` at 4-13 m/s;
+- ``ramps_9_16_ring_310``: ``random_ramps`` at 9-16 m/s on a 310 m ring;
+- ``perturbation_15_p7_humans_15pct``: ``random_perturbation`` around 15 m/s, +-2 m/s knots every 7 s, with the
+  humans' parameters spread +-15 %;
+- ``steps_6_15``: ``random_steps`` at 6-15 m/s, period 16 s;
+- ``random_stops_short_brisk``: ``random_stop_and_go`` with holds of 8-16 s at 7-15 m/s, stands of 1.5-4 s, braking
+  and driving off at 1.3-2.3 m/s^2;
+- ``brake_from_15_late_ring_290``: ``emergency_brake`` from 15 m/s down to 0 m/s at 125 s, on a 290 m ring;
+- ``steps_20_24``: ``random_steps`` at 20-24 m/s, period 18 s, above the training range.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -565,6 +580,27 @@ def cases(seconds: float) -> dict[str, dict]:
                                                                                  "v_low": 0.0},
                                         "env": {"ring_length": 280.0}},
         "sine_21_p45": {"profile": "sine", "kwargs": {"v_star": 21.5, "amplitude": 2.0, "period": 45.0}},
+        # fresh_16: fixed on 2026-12-01 after fresh_15 was scored, before anything ran on them: a ninth out-of-sample
+        # set, and the test of any change made after fresh_15
+        "sine_14_p50_ring_270": {"profile": "sine", "kwargs": {"v_star": 14.0, "amplitude": 2.5, "period": 50.0},
+                                 "env": {"ring_length": 270.0}},
+        "sine_12_p35": {"profile": "sine", "kwargs": {"v_star": 12.0, "amplitude": 2.0, "period": 35.0}},
+        "ramps_4_13": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 13.0}},
+        "ramps_9_16_ring_310": {"profile": "random_ramps", "kwargs": {"v_low": 9.0, "v_high": 16.0},
+                                "env": {"ring_length": 310.0}},
+        "perturbation_15_p7_humans_15pct": {"profile": "random_perturbation", "kwargs": {"v_star": 15.0,
+                                                                                         "amplitude": 2.0, "period": 7.0},
+                                            "eval": {"hdv_param_noise": 0.15}},
+        "steps_6_15": {"profile": "random_steps", "kwargs": {"v_low": 6.0, "v_high": 15.0, "period": 16.0,
+                                                             "v_init": 10.0}},
+        "random_stops_short_brisk": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 7.0, "v_high": 15.0, "hold_min": 8.0, "hold_max": 16.0, "stop_min": 1.5, "stop_max": 4.0,
+            "rate_min": 1.3, "rate_max": 2.3}},
+        "brake_from_15_late_ring_290": {"profile": "emergency_brake", "kwargs": {"start": 125.0, "v_cruise": 15.0,
+                                                                                 "v_low": 0.0},
+                                        "env": {"ring_length": 290.0}},
+        "steps_20_24": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 24.0, "period": 18.0,
+                                                              "v_init": 22.0}},
     }
 
 
@@ -600,12 +636,14 @@ FRESH_14 = ("sine_17_p40_ring_260", "sine_14_p45", "ramps_3_9_ring_300", "ramps_
             "steps_8_18_humans_25pct", "random_stops_slow_quick", "brake_from_19_late", "ramps_20_25")
 FRESH_15 = ("sine_15_p45_ring_250", "sine_13_p40", "ramps_5_12_ring_270", "ramps_10_17_humans_20pct", "perturbation_17_p9",
             "steps_7_17_ring_300", "random_stops_long_quick", "brake_from_18_late_ring_280", "sine_21_p45")
+FRESH_16 = ("sine_14_p50_ring_270", "sine_12_p35", "ramps_4_13", "ramps_9_16_ring_310", "perturbation_15_p7_humans_15pct",
+            "steps_6_15", "random_stops_short_brisk", "brake_from_15_late_ring_290", "steps_20_24")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
-          "fresh_15": FRESH_15, "training": TRAINING}
+          "fresh_15": FRESH_15, "fresh_16": FRESH_16, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
