@@ -231,6 +231,24 @@ class CatchUpConfig:
 
 
 @dataclass
+class StandArrivalConfig:
+    """``transforms.residual.stand_arrival`` (needs ``stop_gap``): near the stopping envelope's edge behind a
+    braking leader, the base is held at or below the constant deceleration that brings the car to rest
+    ``stand_gap`` (m) behind the point where its leader, braking on as it brakes now (over V2V), will stand
+    (``StoppingEnvelope(stand_gap=...)``; the leader's braking counted at most ``leader_brake`` m/s^2, null: all
+    of it): all of it on the edge at the car's speeds up to ``speeds[0]`` (m/s),
+    none from ``slack`` metres of the envelope's margin or from ``speeds[1]``, linear between. Without it a base
+    that rides the edge down to a stop ends every stop braking at the car's full braking. ``stand_gap`` null (the
+    default): off. It acts in training and deployment alike (a change of the base: retrain).
+    """
+
+    stand_gap: float | None = None  # m, > 0; null: off
+    speeds: Any = field(default_factory=lambda: [9.0, 12.0])  # [full, none] (m/s)
+    slack: float = 3.0  # m: the envelope's margin from which the term acts not at all
+    leader_brake: float | None = None  # m/s^2, > 0: the leader's braking counted at most this much; null: all of it
+
+
+@dataclass
 class DriveOffConfig:
     """``transforms.residual.drive_off``: after a standstill the executed command (base plus residual) is capped at
     ``gain * (v_leader + overspeed - v)`` until the CAV has matched its leader for ``release`` s
@@ -321,6 +339,8 @@ class ResidualConfig:
     null: off.
     ``catch_up`` (:class:`CatchUpConfig`): the base (inside the envelope) lifted toward an acceleration while
     its leader pulls away from a large gap; off by default.
+    ``stand_arrival`` (:class:`StandArrivalConfig`; needs ``stop_gap``): near the envelope's edge the base is
+    held at or below a constant deceleration to rest behind where a braking leader will stand; off by default.
     ``drive_off`` (:class:`DriveOffConfig`): after a standstill, the command capped so that the CAV eases onto
     its leader's speed from below; off by default.
     ``join`` (:class:`JoinConfig`): a CAV that starts far behind its leader joins it under a classical law and
@@ -351,6 +371,7 @@ class ResidualConfig:
     beyond_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
+    stand_arrival: StandArrivalConfig = field(default_factory=StandArrivalConfig)
     drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
     join: JoinConfig = field(default_factory=JoinConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base

@@ -202,6 +202,23 @@ def _is(setting: Num, value: float) -> bool:
     return isinstance(setting, (int, float)) and setting == value
 
 
+def stop_arrival_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, stand_gap: Num,
+                       max_brake: Num = math.inf, min_brake: float = 1e-3) -> Tensor:
+    """``-v^2 / (2 R)``, ``R = gap + v_leader^2 / (2 b_l) - stand_gap``, ``b_l = clip(-a_leader, min_brake,
+    max_brake)``: the constant deceleration that brings the car to rest ``stand_gap`` (m) behind the point where its
+    leader, braking on as it brakes now (counted at most ``max_brake``, m/s^2), will stand.
+
+    A leader that does not brake stands ``v_leader^2 / (2 min_brake)`` ahead, far enough that the term asks for
+    almost nothing; a standing leader stands where it is. The term is continuous in the state through both: as
+    the leader's braking fades to 0 its stopping point recedes and the term goes to 0, and as the leader comes to
+    rest its stopping point reaches it. ``R`` is floored at 0.05 m (the term is then the car's hardest braking or
+    more; the caller bounds it).
+    """
+    b_l = (-a_leader).clamp(min_brake, max_brake)
+    room = (gap + v_leader * v_leader / (2.0 * b_l) - stand_gap).clamp_min(0.05)
+    return -(v * v) / (2.0 * room)
+
+
 def closing_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor | None = None, *, target: Num, decel: Num,
                   closing_max: Num, k: Num, a_max: Num, ka_brake: Num = 0.0, **_) -> Tensor:
     """``min(ka_brake min(a_leader, 0) + k (u*(gap - target) - (v - v_leader)), a_max)``,

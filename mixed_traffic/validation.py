@@ -145,6 +145,9 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.residual.catch_up.horizon": Real(0),
     "transforms.residual.catch_up.when": OneOf(("always", "deploy")),
+    "transforms.residual.stand_arrival.stand_gap": Real(0, lo_open=True, optional=True),
+    "transforms.residual.stand_arrival.slack": Real(0, lo_open=True),
+    "transforms.residual.stand_arrival.leader_brake": Real(0, lo_open=True, optional=True),
     "transforms.residual.drive_off.gain": Real(0, 20, lo_open=True, optional=True),
     "transforms.residual.drive_off.overspeed": Real(0, 5),
     "transforms.residual.drive_off.accel": Real(0, 10, lo_open=True),
@@ -387,6 +390,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     _check_ordered_pair(cfg, "transforms.residual.fade_speeds", "[v_full, v_zero] with 0 <= v_full < v_zero (m/s), or null")
     for field, needs, allowed in (  # a setting of another that must be on
             ("arrive_gain", "stop_gap", "null, or a gain (1/s^2, > 0) with a stop_gap (the envelope it arrives at)"),
+            ("stand_arrival.stand_gap", "stop_gap", "null, or a gap (m, > 0) with a stop_gap (the envelope it acts near)"),
             ("envelope_fade_slack_below", "envelope_fade_slack",
              "null, or a leader speed (m/s, > 0) with an envelope_fade_slack"),
             ("envelope_fade_slack_brake", "envelope_fade_slack",
@@ -405,6 +409,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
                           "null, or a margin (m, > 0) with envelope_fade always / deploy")
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
+    _check_ordered_pair(cfg, "transforms.residual.stand_arrival.speeds", "[full, none] with 0 <= full < none (m/s)")
     for key in SPEED_LAWS:
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

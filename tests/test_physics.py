@@ -646,3 +646,103 @@ def test_near_gap_base_parks_near_the_rewards_gap_at_16_m_s_and_its_laws_agree_w
     idm = classic_law(r.high_speed.base, r.high_speed.params, env).module
     assert _base_steady_gap(lambda g, s, lv, a: soft(g, s, lv), [10.0])[0] == pytest.approx(
         _base_steady_gap(lambda g, s, lv, a: idm(g, s, lv), [10.0])[0], abs=0.3)
+
+
+def test_stop_arrival_accel_is_the_constant_deceleration_to_rest_behind_the_leaders_stopping_point():
+    """``stop_arrival_accel``: behind a standing leader, braking at it from 10 m/s with 30 m of gap covers exactly the
+    25 m to a 5-m stand (``v^2 / (2 d)``); behind one braking at 2 m/s^2 from 8 m/s the stopping point lies 16 m
+    further; a leader that does not brake puts it so far ahead that the term asks for almost nothing."""
+    from mixed_traffic.physics import stop_arrival_accel
+
+    v = torch.tensor([10.0])
+    d = -stop_arrival_accel(torch.tensor([30.0]), v, torch.tensor([0.0]), torch.tensor([0.0]), stand_gap=5.0)
+    assert (v * v / (2 * d)).item() == pytest.approx(25.0)
+    d = -stop_arrival_accel(torch.tensor([30.0]), v, torch.tensor([8.0]), torch.tensor([-2.0]), stand_gap=5.0)
+    assert (v * v / (2 * d)).item() == pytest.approx(25.0 + 16.0)
+    coasting = stop_arrival_accel(torch.tensor([30.0]), v, torch.tensor([8.0]), torch.tensor([0.0]), stand_gap=5.0)
+    assert -0.01 < coasting.item() <= 0.0
+    # max_brake: a leader braking at 3 m/s^2 counts as one braking at 1.5 (its stop 21.3 m ahead, not 10.7 m)
+    hard, counted = (stop_arrival_accel(torch.tensor([30.0]), v, torch.tensor([8.0]), torch.tensor([a]), stand_gap=5.0,
+                                        max_brake=1.5) for a in (-3.0, -1.5))
+    assert hard.item() == counted.item() > stop_arrival_accel(torch.tensor([30.0]), v, torch.tensor([8.0]),
+                                                               torch.tensor([-3.0]), stand_gap=5.0).item()
+
+
+def _stop_behind_a_braking_leader(base, v0: float, rate: float, dt: float = 0.1):
+    """The base alone behind a leader that cruises at ``v0`` for 5 s and brakes at ``rate`` to a standstill
+    (V2V reports its acceleration of the step): per step the car's executed acceleration, speed and gap."""
+    vl = v = v0
+    gap = 5.0 + 0.86 * v0 + 2.0
+    rows = []
+    for k in range(int(40.0 / dt)):
+        al = 0.0 if k * dt < 5.0 else -rate
+        vl1 = max(vl + al * dt, 0.0)
+        a = float(base(*(torch.tensor([x]) for x in (gap, v, vl, (vl1 - vl) / dt))))
+        v1 = max(v + a * dt, 0.0)
+        gap += (vl + vl1) / 2 * dt - (v + v1) / 2 * dt
+        rows.append(((v1 - v) / dt, v1, gap))
+        v, vl = v1, vl1
+    return rows
+
+
+@pytest.mark.parametrize("v0, rate", [(14.0, 1.5), (8.0, 1.3), (10.0, 1.5)])
+def test_smooth_stop_base_ends_a_stop_on_a_constant_deceleration_not_on_the_envelopes_full_braking(v0, rate):
+    """``experiment=ring_lagrangian_ppo_smooth_stop`` (``transforms.residual.stand_arrival``): the near-gap base rides
+    its stopping envelope's edge down to a stop and ends it at the car's full braking (3 m/s^2), a dip of about
+    1 m/s^2 below the braking before it; the smooth-stop base ends the stop no harder than it braked before the last
+    second, comes down to a crawl (0.1 m/s) still more than 5.1 m back (the soft law then creeps to its 5 m), never
+    closer than the envelope's 5 m, and the total variation of its acceleration is at least 1 m/s^2 (one dip) less.
+    (Its leader's braking counts at most 1.5 m/s^2, so behind a leader that brakes harder to a stop it may still end
+    on the edge.)"""
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.validation import validate_config
+    from tests.test_config import assert_differs_only_in
+
+    near, smooth = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"])) for n in ("near_gap", "smooth_stop"))
+    assert_differs_only_in(smooth, near, {"transforms.residual.params.kv": 0.8,
+                                          "transforms.residual.stand_arrival.stand_gap": 5.2,
+                                          "transforms.residual.stand_arrival.speeds": [6.0, 9.0],
+                                          "transforms.residual.stand_arrival.leader_brake": 1.5})
+    env = make_env("ring", batch_size=1, seed=0)
+    runs = {name: _stop_behind_a_braking_leader(residual_base(c.transforms.residual, env, deploy=False).module, v0, rate)
+            for name, c in (("near", near), ("smooth", smooth))}
+    for name, rows in runs.items():
+        stood = next(k for k, r in enumerate(rows) if k > 50 and r[1] < 0.1)
+        before, last = [r[0] for r in rows[:stood - 10]], [r[0] for r in rows[stood - 10:stood + 1]]
+        tv = sum(abs(b[0] - a[0]) for a, b in zip(rows, rows[1:]))
+        if name == "near":
+            assert min(last) < -2.9 and min(last) < min(before) - 0.5, (min(last), min(before))
+            tv_without = tv
+        else:
+            assert min(last) >= min(before) - 0.3 and min(last) > -2.7, (min(last), min(before))
+            assert rows[stood][2] > 5.1 and min(r[2] for r in rows) > 5.0 - 1e-3, (rows[stood][2], min(r[2] for r in rows))
+            assert tv < tv_without - 1.0, (tv, tv_without)
+
+
+def test_stand_arrival_lowers_the_command_only_near_the_envelopes_edge_at_low_speed_behind_a_braking_leader():
+    """``StoppingEnvelope(stand_gap=...)``: the command is the plain envelope's above ``stand_speeds[1]``, with
+    ``stand_slack`` metres of margin or more, and behind a leader that does not brake (the term asks for almost
+    nothing); on the edge at low speed behind a braking leader it is lower; never higher anywhere."""
+    from mixed_traffic import make_env
+    from mixed_traffic.controllers.classic import make_classic_policy, stopping_envelope_policy
+
+    env = make_env("ring", batch_size=1, seed=0)
+    law = make_classic_policy("idm", env, s0=4.0)
+    plain = stopping_envelope_policy(law, env, stop_gap=5.0).module
+    stand = stopping_envelope_policy(law, env, stop_gap=5.0, stand_gap=5.5, stand_speeds=(9.0, 12.0),
+                                     stand_slack=3.0).module
+    g = torch.linspace(5.0, 60.0, 56)
+    for v, vl, al in ((15.0, 10.0, -1.5), (6.0, 4.0, -1.5), (6.0, 6.0, 0.0), (3.0, 1.0, -1.0)):
+        v_, vl_, al_ = (torch.full_like(g, x) for x in (v, vl, al))
+        a0, a1 = plain(g, v_, vl_, al_), stand(g, v_, vl_, al_)
+        assert bool((a1 <= a0 + 1e-6).all())
+        far = stand.slack(g, v_, vl_) >= 3.0
+        assert bool(far.any()) and torch.equal(a1[far], a0[far]), (v, vl)
+        if v > 12.0:
+            assert torch.equal(a1, a0)
+        if al == 0.0:
+            assert float((a0 - a1).max()) < 0.02
+        if v < 9.0 and al < 0.0:
+            assert bool((a1 < a0 - 0.05).any()), (v, vl)

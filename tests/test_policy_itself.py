@@ -301,6 +301,10 @@ def test_evaluation_without_layer_passes_for_a_safe_controller():
     ("transforms.residual.catch_up.dv=0", "transforms.residual.catch_up.dv"),
     ("transforms.residual.catch_up.horizon=-1", "transforms.residual.catch_up.horizon"),
     ("transforms.residual.catch_up.when=train", "transforms.residual.catch_up.when"),
+    ("transforms.residual.stand_arrival.stand_gap=0", "transforms.residual.stand_arrival.stand_gap"),
+    ("transforms.residual.stand_arrival.stand_gap=5.2", "transforms.residual.stand_arrival.stand_gap"),  # no stop_gap
+    ("transforms.residual.stand_arrival.speeds=[12,9]", "transforms.residual.stand_arrival.speeds"),
+    ("transforms.residual.stand_arrival.slack=0", "transforms.residual.stand_arrival.slack"),
 ])
 def test_new_config_fields_are_validated(override, field):
     from mixed_traffic.validation import validate_config

@@ -33,6 +33,7 @@ from mixed_traffic.physics import (
     car_following_accel,
     closing_accel,
     soft_follower_accel,
+    stop_arrival_accel,
 )
 
 CLASSIC = ("idm", "ovm", "soft", "cacc", "closing")
@@ -304,10 +305,27 @@ class StoppingEnvelope(nn.Module):
     falls back within half a second. The arrival term is smooth in the state, so the law hands over to it
     without that kink. The envelope's bound is unchanged; :meth:`room` is measured from the command, the arrival
     term included (default None: off).
+
+    ``stand_gap`` (m, > 0, or None): near the envelope's edge behind a braking leader the law is also held at or
+    below :meth:`stand_arrival`, the constant deceleration that brings the car to rest ``stand_gap`` behind the
+    point where its leader, braking on as it brakes now (its acceleration over V2V, counted at most
+    ``stand_leader_brake`` m/s^2: a leader that steps its speed down at its hardest braking is not taken to stop
+    at that rate), will stand (:func:`mixed_traffic.physics.stop_arrival_accel`), blended in as ``command + w min(0, a_stand - command)``
+    with ``w = w_v w_s``: ``w_v = clip((stand_speeds[1] - v) / (stand_speeds[1] - stand_speeds[0]), 0, 1)`` by the
+    car's speed and ``w_s = clip(1 - slack / stand_slack, 0, 1)`` by the envelope's margin in metres
+    (:meth:`slack`). A law whose braking answers a slowing leader weakly at low speeds rides the envelope's edge
+    down to a stop, and on that edge the car's braking converges to the envelope's full braking ``b`` as the
+    leader's speed falls to 0 (on the edge ``a = (b / b_l) a_l (v_l / v) + b (v_l - v) / v``, ``-b`` at
+    ``v_l = 0``): every stop ends in a dip of about 1 m/s^2 below the braking before it. The term ends the stop on
+    the constant deceleration instead, off the edge. A leader that stops braking has its stopping point recede to
+    infinity (the term asks for nothing), one at rest has it where it stands, so it comes and goes without a step
+    in the state. Default None: off.
     """
 
     def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float,
-                 gap_margin: float = 0.0, speed_margin: float = 0.0, arrive_gain: float | None = None):
+                 gap_margin: float = 0.0, speed_margin: float = 0.0, arrive_gain: float | None = None,
+                 stand_gap: float | None = None, stand_speeds: tuple[float, float] = (9.0, 12.0),
+                 stand_slack: float = 3.0, stand_leader_brake: float = math.inf):
         super().__init__()
         from transforms.safety_layer import safe_accel_upper  # mixed_traffic imports the transforms package lazily
 
@@ -319,6 +337,20 @@ class StoppingEnvelope(nn.Module):
             raise ValueError(f"arrive_gain = {arrive_gain} is invalid; allowed: > 0 (1/s^2), or None")
         self.gap_margin, self.speed_margin = float(gap_margin), float(speed_margin)
         self.arrive_gain = None if arrive_gain is None else float(arrive_gain)
+        if stand_gap is not None:
+            v_full, v_none = (float(v) for v in stand_speeds)
+            if not stand_gap > 0.0:
+                raise ValueError(f"stand_gap = {stand_gap} is invalid; allowed: > 0 (m), or None")
+            if not 0.0 <= v_full < v_none:
+                raise ValueError(f"stand_speeds = {list(stand_speeds)} is invalid; allowed: 0 <= stand_speeds[0] < "
+                                 "stand_speeds[1] (m/s)")
+            if not stand_slack > 0.0:
+                raise ValueError(f"stand_slack = {stand_slack} is invalid; allowed: > 0 (m)")
+            if not stand_leader_brake > 0.0:
+                raise ValueError(f"stand_leader_brake = {stand_leader_brake} is invalid; allowed: > 0 (m/s^2)")
+        self.stand_gap = None if stand_gap is None else float(stand_gap)
+        self.stand_speeds, self.stand_slack = tuple(float(v) for v in stand_speeds), float(stand_slack)
+        self.stand_leader_brake = float(stand_leader_brake)
         self._upper = safe_accel_upper
         self.law, self.stop_gap, self.dt, self.brake, self.low = law, float(stop_gap), float(dt), float(brake), float(low)
         self.register_buffer("leader_brake", torch.as_tensor(leader_brake, dtype=torch.float32), persistent=False)
@@ -343,20 +375,42 @@ class StoppingEnvelope(nn.Module):
 
     @property
     def reads_leader_accel(self) -> bool:
-        return reads_leader_accel(self.law)
+        return reads_leader_accel(self.law) or self.stand_gap is not None
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
         return self.command_and_room(gap, speed, leader_speed, *extra)[0]
 
     def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra):
-        """The command and :meth:`room`, from one evaluation of the law (``extra``: the law's further inputs,
-        CACC's leader acceleration)."""
+        """The command and :meth:`room`, from one evaluation of the law (``extra``: the leader's acceleration,
+        where the law or the stand arrival reads it)."""
         upper = self.bound(gap, speed, leader_speed)
-        command = self.law(gap, speed, leader_speed, *extra)
+        command = self.law(gap, speed, leader_speed, *(extra if reads_leader_accel(self.law) else ()))
         if self.arrive_gain is not None:
             command = torch.minimum(command, self.arrival(gap, speed, leader_speed))
+        if self.stand_gap is not None:
+            if not extra:
+                raise ValueError("the stand arrival (stand_gap) reads the leader's acceleration: pass leader_accel")
+            a_stand = self.stand_arrival(gap, speed, leader_speed, extra[0])
+            command = command + self.stand_weight(gap, speed, leader_speed) * (a_stand - command).clamp_max(0.0)
         command = torch.minimum(command, upper)
         return command, upper - command
+
+    def stand_arrival(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
+                      leader_accel: torch.Tensor) -> torch.Tensor:
+        """The constant deceleration (m/s^2, <= 0) that brings the car to rest ``stand_gap`` behind where its leader,
+        braking on as it brakes now, will stand, for the worst state within the measurement margins, at or above
+        ``low``."""
+        gap, speed, leader_speed = self._worst(gap, speed, leader_speed)
+        a = stop_arrival_accel(gap, speed.clamp_min(0.0), leader_speed.clamp_min(0.0), leader_accel,
+                               stand_gap=self.stand_gap, max_brake=self.stand_leader_brake)
+        return a.clamp_min(self.low)
+
+    def stand_weight(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
+        """How much of :meth:`stand_arrival` acts, in [0, 1]: all of it on the envelope's edge at the car's speeds
+        up to ``stand_speeds[0]``, none from ``stand_slack`` metres of margin or ``stand_speeds[1]``."""
+        v_full, v_none = self.stand_speeds
+        w_v = ((v_none - speed) / (v_none - v_full)).clamp(0.0, 1.0)
+        return w_v * (1.0 - self.slack(gap, speed, leader_speed) / self.stand_slack).clamp(0.0, 1.0)
 
     def arrival(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """The arrival term (m/s^2; ``arrive_gain``): ``-d + arrive_gain * r (1 - d / b)`` while the car closes on
@@ -406,13 +460,17 @@ class _EnvelopeRoom(nn.Module):
 
 def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
                              slack_key: NestedKey | None = None, *, gap_margin: float = 0.0,
-                             speed_margin: float = 0.0, arrive_gain: float | None = None) -> TensorDictModule:
+                             speed_margin: float = 0.0, arrive_gain: float | None = None,
+                             stand_gap: float | None = None, stand_speeds=(9.0, 12.0),
+                             stand_slack: float = 3.0, stand_leader_brake: float = math.inf) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
     (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
     writes the envelope's :meth:`~StoppingEnvelope.room` there, and with ``slack_key`` (with ``room_key``)
     its :meth:`~StoppingEnvelope.slack`. ``gap_margin`` / ``speed_margin``: the envelope's measurement margins
-    (m, m/s; :class:`StoppingEnvelope`); ``arrive_gain``: its arrival term (1/s^2; :class:`StoppingEnvelope`).
+    (m, m/s; :class:`StoppingEnvelope`); ``arrive_gain``: its arrival term (1/s^2; :class:`StoppingEnvelope`);
+    ``stand_gap`` / ``stand_speeds`` / ``stand_slack`` / ``stand_leader_brake``: its arrival behind where a braking leader will stand
+    (:class:`StoppingEnvelope`; the module then also reads the leader's acceleration).
 
     >>> from mixed_traffic import make_env
     >>> env = make_env("ring", batch_size=2, seed=0)
@@ -426,13 +484,19 @@ def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, roo
     low, _ = action_bounds(env)
     envelope = StoppingEnvelope(policy.module, stop_gap=stop_gap, dt=scenario.dt, brake=-low,
                                 leader_brake=scenario_leader_brake(scenario), low=low, gap_margin=gap_margin,
-                                speed_margin=speed_margin, arrive_gain=arrive_gain)
+                                speed_margin=speed_margin, arrive_gain=arrive_gain, stand_gap=stand_gap,
+                                stand_speeds=tuple(stand_speeds), stand_slack=stand_slack,
+                                stand_leader_brake=stand_leader_brake)
+    in_keys = list(policy.in_keys)
+    if stand_gap is not None and LEADER_ACCEL_KEY not in in_keys:
+        require_leader_accel(env, "the stand arrival (stand_gap)")
+        in_keys.append(LEADER_ACCEL_KEY)
     if room_key is None:
         if slack_key is not None:
             raise ValueError("stopping_envelope_policy: slack_key needs a room_key")
-        return TensorDictModule(envelope, in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
+        return TensorDictModule(envelope, in_keys=in_keys, out_keys=list(policy.out_keys))
     extra = [room_key] if slack_key is None else [room_key, slack_key]
-    return TensorDictModule(_EnvelopeRoom(envelope, slack=slack_key is not None), in_keys=list(policy.in_keys),
+    return TensorDictModule(_EnvelopeRoom(envelope, slack=slack_key is not None), in_keys=in_keys,
                             out_keys=[*policy.out_keys, *extra])
 
 

@@ -310,6 +310,17 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
         raise ValueError(f"transforms.residual: {e}") from None
 
 
+def _stand_arrival(rcfg) -> dict:
+    """``stopping_envelope_policy``'s stand-arrival arguments from ``transforms.residual.stand_arrival`` (none when
+    it is off)."""
+    node = rcfg.get("stand_arrival")
+    if node is None or node.get("stand_gap") is None:
+        return {}
+    brake = node.get("leader_brake")
+    return {"stand_gap": node.stand_gap, "stand_speeds": tuple(node.speeds), "stand_slack": node.slack,
+            "stand_leader_brake": math.inf if brake is None else brake}
+
+
 ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope (m/s^2)
 ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
@@ -318,7 +329,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed``, ``top_speed`` and then ``beyond_speed`` when they are set
     (each with its ``brake_floor`` when set),
-    lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (writing its room below it to ``room_key``
+    lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (with its ``stand_arrival`` when that is set; writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum). ``deploy``: the base as evaluated or deployed; False, as it trains
     (without a ``catch_up`` whose ``when`` is ``deploy``)."""
@@ -349,7 +360,7 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     if rcfg.get("stop_gap") is not None:
         base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key,
                                         gap_margin=rcfg.get("gap_margin", 0.0), speed_margin=rcfg.get("speed_margin", 0.0),
-                                        arrive_gain=rcfg.get("arrive_gain"))
+                                        arrive_gain=rcfg.get("arrive_gain"), **_stand_arrival(rcfg))
     return base
 
 
