@@ -239,13 +239,15 @@ class StandArrivalConfig:
     of it): all of it on the edge at the car's speeds up to ``speeds[0]`` (m/s),
     none from ``slack`` metres of the envelope's margin or from ``speeds[1]``, linear between. Without it a base
     that rides the edge down to a stop ends every stop braking at the car's full braking. ``stand_gap`` null (the
-    default): off. It acts in training and deployment alike (a change of the base: retrain).
+    default): off. It acts in training and deployment alike (a change of the base: retrain). The other defaults are
+    the setting of ``experiment=ring_lagrangian_ppo_smooth_stop`` (docs/results.md, "Stops that end on a constant
+    deceleration": at 9-12 m/s, or with the leader's braking counted in full, the head's speed steps look like stops).
     """
 
     stand_gap: float | None = None  # m, > 0; null: off
-    speeds: Any = field(default_factory=lambda: [9.0, 12.0])  # [full, none] (m/s)
+    speeds: Any = field(default_factory=lambda: [6.0, 9.0])  # [full, none] (m/s)
     slack: float = 3.0  # m: the envelope's margin from which the term acts not at all
-    leader_brake: float | None = None  # m/s^2, > 0: the leader's braking counted at most this much; null: all of it
+    leader_brake: float | None = 1.5  # m/s^2, > 0: the leader's braking counted at most this much; null: all of it
 
 
 @dataclass
