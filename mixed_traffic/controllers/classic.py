@@ -324,8 +324,8 @@ class StoppingEnvelope(nn.Module):
 
     def __init__(self, law: nn.Module, *, stop_gap: float, dt: float, brake: float, leader_brake, low: float,
                  gap_margin: float = 0.0, speed_margin: float = 0.0, arrive_gain: float | None = None,
-                 stand_gap: float | None = None, stand_speeds: tuple[float, float] = (9.0, 12.0),
-                 stand_slack: float = 3.0, stand_leader_brake: float = math.inf):
+                 stand_gap: float | None = None, stand_speeds: tuple[float, float] = (6.0, 9.0),
+                 stand_slack: float = 3.0, stand_leader_brake: float = 1.5):
         super().__init__()
         from transforms.safety_layer import safe_accel_upper  # mixed_traffic imports the transforms package lazily
 
@@ -461,8 +461,8 @@ class _EnvelopeRoom(nn.Module):
 def stopping_envelope_policy(policy: TensorDictModule, env, stop_gap: float, room_key: NestedKey | None = None,
                              slack_key: NestedKey | None = None, *, gap_margin: float = 0.0,
                              speed_margin: float = 0.0, arrive_gain: float | None = None,
-                             stand_gap: float | None = None, stand_speeds=(9.0, 12.0),
-                             stand_slack: float = 3.0, stand_leader_brake: float = math.inf) -> TensorDictModule:
+                             stand_gap: float | None = None, stand_speeds=(6.0, 9.0),
+                             stand_slack: float = 3.0, stand_leader_brake: float = 1.5) -> TensorDictModule:
     """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) inside the
     :class:`StoppingEnvelope` of ``env``'s braking bounds: its own (the action spec's low) and its leader's
     (the head's, a human's or a CAV's; as the safety layer reads them). With ``room_key`` the module also
