@@ -669,19 +669,20 @@ def test_stop_arrival_accel_is_the_constant_deceleration_to_rest_behind_the_lead
 
 
 def _stop_behind_a_braking_leader(base, v0: float, rate: float, dt: float = 0.1):
-    """The base alone behind a leader that cruises at ``v0`` for 5 s and brakes at ``rate`` to a standstill
-    (V2V reports its acceleration of the step): per step the car's executed acceleration, speed and gap."""
-    vl = v = v0
-    gap = 5.0 + 0.86 * v0 + 2.0
+    """The base alone behind a leader that cruises at ``v0`` for 5 s and brakes at ``rate`` to a standstill, both
+    moved by the env's :func:`integrate` (V2V reports the leader's executed acceleration of the last step): per step
+    the car's executed acceleration, speed and gap."""
+    from mixed_traffic.physics import integrate
+
+    pos, vel = torch.tensor([5.0 + 0.86 * v0 + 2.0, 0.0]), torch.tensor([v0, v0])  # [leader, car]; no length
+    leader_accel = torch.zeros(1)
     rows = []
     for k in range(int(40.0 / dt)):
-        al = 0.0 if k * dt < 5.0 else -rate
-        vl1 = max(vl + al * dt, 0.0)
-        a = float(base(*(torch.tensor([x]) for x in (gap, v, vl, (vl1 - vl) / dt))))
-        v1 = max(v + a * dt, 0.0)
-        gap += (vl + vl1) / 2 * dt - (v + v1) / 2 * dt
-        rows.append(((v1 - v) / dt, v1, gap))
-        v, vl = v1, vl1
+        gap = pos[:1] - pos[1:]
+        a = base(gap, vel[1:], vel[:1], leader_accel).reshape(1)
+        pos, vel, executed = integrate(pos, vel, torch.cat([torch.tensor([0.0 if k * dt < 5.0 else -rate]), a]), dt)
+        leader_accel = executed[:1]
+        rows.append((float(executed[1]), float(vel[1]), float(pos[0] - pos[1])))
     return rows
 
 
