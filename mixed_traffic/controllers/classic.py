@@ -383,17 +383,24 @@ class StoppingEnvelope(nn.Module):
     def command_and_room(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra):
         """The command and :meth:`room`, from one evaluation of the law (``extra``: the leader's acceleration,
         where the law or the stand arrival reads it)."""
+        return self.command_room_slack(gap, speed, leader_speed, *extra)[:2]
+
+    def command_room_slack(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra,
+                           with_slack: bool = False):
+        """The command, :meth:`room` and :meth:`slack` (None unless ``with_slack`` or the stand arrival needs it),
+        from one evaluation of the law and of the margin."""
         upper = self.bound(gap, speed, leader_speed)
         command = self.law(gap, speed, leader_speed, *(extra if reads_leader_accel(self.law) else ()))
         if self.arrive_gain is not None:
             command = torch.minimum(command, self.arrival(gap, speed, leader_speed))
+        slack = self.slack(gap, speed, leader_speed) if with_slack or self.stand_gap is not None else None
         if self.stand_gap is not None:
             if not extra:
                 raise ValueError("the stand arrival (stand_gap) reads the leader's acceleration: pass leader_accel")
             a_stand = self.stand_arrival(gap, speed, leader_speed, extra[0])
-            command = command + self.stand_weight(gap, speed, leader_speed) * (a_stand - command).clamp_max(0.0)
+            command = command + self.stand_weight(speed, slack) * (a_stand - command).clamp_max(0.0)
         command = torch.minimum(command, upper)
-        return command, upper - command
+        return command, upper - command, slack
 
     def stand_arrival(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
                       leader_accel: torch.Tensor) -> torch.Tensor:
@@ -405,12 +412,13 @@ class StoppingEnvelope(nn.Module):
                                stand_gap=self.stand_gap, max_brake=self.stand_leader_brake)
         return a.clamp_min(self.low)
 
-    def stand_weight(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
-        """How much of :meth:`stand_arrival` acts, in [0, 1]: all of it on the envelope's edge at the car's speeds
-        up to ``stand_speeds[0]``, none from ``stand_slack`` metres of margin or ``stand_speeds[1]``."""
+    def stand_weight(self, speed: torch.Tensor, slack: torch.Tensor) -> torch.Tensor:
+        """How much of :meth:`stand_arrival` acts, in [0, 1], given the envelope's margin ``slack`` (:meth:`slack`):
+        all of it on the edge at the car's speeds up to ``stand_speeds[0]``, none from ``stand_slack`` metres of
+        margin or ``stand_speeds[1]``."""
         v_full, v_none = self.stand_speeds
         w_v = ((v_none - speed) / (v_none - v_full)).clamp(0.0, 1.0)
-        return w_v * (1.0 - self.slack(gap, speed, leader_speed) / self.stand_slack).clamp(0.0, 1.0)
+        return w_v * (1.0 - slack / self.stand_slack).clamp(0.0, 1.0)
 
     def arrival(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor) -> torch.Tensor:
         """The arrival term (m/s^2; ``arrive_gain``): ``-d + arrive_gain * r (1 - d / b)`` while the car closes on
@@ -451,10 +459,10 @@ class _EnvelopeRoom(nn.Module):
         self.envelope, self.with_slack = envelope, slack
 
     def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra):
-        command, room = self.envelope.command_and_room(gap, speed, leader_speed, *extra)
+        command, room, slack = self.envelope.command_room_slack(gap, speed, leader_speed, *extra,
+                                                                with_slack=self.with_slack)
         if not self.with_slack:
             return command, room
-        slack = self.envelope.slack(gap, speed, leader_speed)
         return command, room, torch.where(speed > leader_speed, slack, torch.full_like(slack, math.inf))
 
 
