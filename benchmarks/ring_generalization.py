@@ -256,6 +256,31 @@ out-of-sample set, the test of any change made after fresh_15; the same mix:
 - ``brake_from_15_late_ring_290``: ``emergency_brake`` from 15 m/s down to 0 m/s at 125 s, on a 290 m ring;
 - ``steps_20_24``: ``random_steps`` at 20-24 m/s, period 18 s, above the training range.
 
+Nine more (``--cases fresh_17``), fixed after fresh_16 was scored and before anything ran on them: a tenth
+out-of-sample set, the test of any change made after fresh_16; the same mix:
+
+- ``sine_15_p40_ring_300``: ``sine`` at 15 +- 2 m/s, period 40 s, on a 300 m ring;
+- ``sine_10_p50``: ``sine`` at 10 +- 3 m/s, period 50 s;
+- ``ramps_6_14_ring_260``: ``random_ramps`` at 6-14 m/s on a 260 m ring;
+- ``ramps_11_18``: ``random_ramps`` at 11-18 m/s;
+- ``perturbation_13_humans_25pct``: ``random_perturbation`` around 13 m/s, +-2.5 m/s knots every 6 s, with the
+  humans' parameters spread +-25 %;
+- ``steps_8_16_ring_280``: ``random_steps`` at 8-16 m/s, period 20 s, on a 280 m ring;
+- ``random_stops_varied``: ``random_stop_and_go`` with holds of 8-18 s at 8-14 m/s, stands of 2-6 s, braking and
+  driving off at 1.2-2.4 m/s^2;
+- ``brake_from_13_late_ring_320``: ``emergency_brake`` from 13 m/s down to 0 m/s at 115 s, on a 320 m ring;
+- ``ramps_21_25``: ``random_ramps`` at 21-25 m/s, above the training range.
+
+Four more (``--cases fresh_17_fast``), fixed with fresh_17 and before anything ran on them, all above the training
+range, where every set from fresh_8 on has one case and the base's band laws (the residual fades out from 18 m/s)
+lost most of the sines and one of the steps:
+
+- ``sine_22_p55``: ``sine`` at 22 +- 2 m/s, period 55 s;
+- ``steps_21_25_ring_290``: ``random_steps`` at 21-25 m/s, period 22 s, on a 290 m ring;
+- ``perturbation_22``: ``random_perturbation`` around 22 m/s, +-2 m/s knots every 8 s;
+- ``sine_20_p35_humans_20pct``: ``sine`` at 20.5 +- 1.5 m/s, period 35 s, with the humans' parameters spread
+  +-20 %.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -601,6 +626,35 @@ def cases(seconds: float) -> dict[str, dict]:
                                         "env": {"ring_length": 290.0}},
         "steps_20_24": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 24.0, "period": 18.0,
                                                               "v_init": 22.0}},
+        # fresh_17 and fresh_17_fast: fixed on 2026-12-01 after fresh_16 was scored, before anything ran on them: a
+        # tenth out-of-sample set, the test of any change made after fresh_16, and four cases above the training range
+        "sine_15_p40_ring_300": {"profile": "sine", "kwargs": {"v_star": 15.0, "amplitude": 2.0, "period": 40.0},
+                                 "env": {"ring_length": 300.0}},
+        "sine_10_p50": {"profile": "sine", "kwargs": {"v_star": 10.0, "amplitude": 3.0, "period": 50.0}},
+        "ramps_6_14_ring_260": {"profile": "random_ramps", "kwargs": {"v_low": 6.0, "v_high": 14.0},
+                                "env": {"ring_length": 260.0}},
+        "ramps_11_18": {"profile": "random_ramps", "kwargs": {"v_low": 11.0, "v_high": 18.0}},
+        "perturbation_13_humans_25pct": {"profile": "random_perturbation", "kwargs": {"v_star": 13.0,
+                                                                                      "amplitude": 2.5, "period": 6.0},
+                                         "eval": {"hdv_param_noise": 0.25}},
+        "steps_8_16_ring_280": {"profile": "random_steps", "kwargs": {"v_low": 8.0, "v_high": 16.0, "period": 20.0,
+                                                                      "v_init": 12.0},
+                                "env": {"ring_length": 280.0}},
+        "random_stops_varied": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 14.0, "hold_min": 8.0, "hold_max": 18.0, "stop_min": 2.0, "stop_max": 6.0,
+            "rate_min": 1.2, "rate_max": 2.4}},
+        "brake_from_13_late_ring_320": {"profile": "emergency_brake", "kwargs": {"start": 115.0, "v_cruise": 13.0,
+                                                                                 "v_low": 0.0},
+                                        "env": {"ring_length": 320.0}},
+        "ramps_21_25": {"profile": "random_ramps", "kwargs": {"v_low": 21.0, "v_high": 25.0}},
+        "sine_22_p55": {"profile": "sine", "kwargs": {"v_star": 22.0, "amplitude": 2.0, "period": 55.0}},
+        "steps_21_25_ring_290": {"profile": "random_steps", "kwargs": {"v_low": 21.0, "v_high": 25.0, "period": 22.0,
+                                                                       "v_init": 23.0},
+                                 "env": {"ring_length": 290.0}},
+        "perturbation_22": {"profile": "random_perturbation", "kwargs": {"v_star": 22.0, "amplitude": 2.0,
+                                                                         "period": 8.0}},
+        "sine_20_p35_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 20.5, "amplitude": 1.5, "period": 35.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
     }
 
 
@@ -638,12 +692,16 @@ FRESH_15 = ("sine_15_p45_ring_250", "sine_13_p40", "ramps_5_12_ring_270", "ramps
             "steps_7_17_ring_300", "random_stops_long_quick", "brake_from_18_late_ring_280", "sine_21_p45")
 FRESH_16 = ("sine_14_p50_ring_270", "sine_12_p35", "ramps_4_13", "ramps_9_16_ring_310", "perturbation_15_p7_humans_15pct",
             "steps_6_15", "random_stops_short_brisk", "brake_from_15_late_ring_290", "steps_20_24")
+FRESH_17 = ("sine_15_p40_ring_300", "sine_10_p50", "ramps_6_14_ring_260", "ramps_11_18", "perturbation_13_humans_25pct",
+            "steps_8_16_ring_280", "random_stops_varied", "brake_from_13_late_ring_320", "ramps_21_25")
+FRESH_17_FAST = ("sine_22_p55", "steps_21_25_ring_290", "perturbation_22", "sine_20_p35_humans_20pct")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
-          "fresh_15": FRESH_15, "fresh_16": FRESH_16, "training": TRAINING}
+          "fresh_15": FRESH_15, "fresh_16": FRESH_16, "fresh_17": FRESH_17,
+          "fresh_17_fast": FRESH_17_FAST, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
