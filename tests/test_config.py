@@ -485,15 +485,16 @@ def test_gentle_join_and_lag_experiments_change_only_the_join_and_the_soft_law()
         assert_differs_only_in(cfg, ref, {"transforms.residual.join": ANY, "transforms.residual.params": ANY})
 
 
-def test_default_experiment_is_smooth_stop_and_paced_join_is_apg60_with_a_join_paced_by_the_leaders_speed():
-    """The default (``mt-main``) is ``experiment=ring_lagrangian_ppo_smooth_stop`` (``ring_lagrangian_ppo_near_gap``,
-    the default before it, with a stand arrival in its base and a softer answer to a leader that pulls away;
+def test_default_experiment_is_fast_band_and_paced_join_is_apg60_with_a_join_paced_by_the_leaders_speed():
+    """The default (``mt-main``) is ``experiment=ring_lagrangian_ppo_fast_band`` (``ring_lagrangian_ppo_smooth_stop``,
+    the default before it, with one band law from 18 m/s up and a brake floor on its IDM; ``smooth_stop`` is
+    ``ring_lagrangian_ppo_near_gap`` with a stand arrival in its base and a softer answer to a leader that pulls away;
     ``near_gap`` is ``ring_lagrangian_ppo_paced_join`` with its base's gaps changed; tests/test_physics.py checks what
     each changes). ``ring_lagrangian_ppo_paced_join`` (the default before those) is ``ring_lagrangian_ppo_apg60`` with the join law's settings changed and nothing else; the
     join is deploy-only, so the chain it trains is apg60's."""
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
 
-    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_smooth_stop"
+    assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_fast_band"
     apg60, paced = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "paced_join"))
     assert paced.transforms.residual.join.when == "deploy"
     assert_differs_only_in(paced, apg60, {"transforms.residual.join.params.v0": 40.0,

@@ -722,6 +722,56 @@ def test_smooth_stop_base_ends_a_stop_on_a_constant_deceleration_not_on_the_enve
             assert tv < tv_without - 1.0, (tv, tv_without)
 
 
+def _behind_a_sine_leader(base, v_mid: float, amplitude: float, period: float, dt: float = 0.1):
+    """The base alone 25 m behind a leader whose speed is ``v_mid + amplitude sin(2 pi t / period)``, both moved by
+    the env's :func:`integrate` (V2V reports the leader's executed acceleration of the last step), for 200 s: per step
+    after the first 60 s the car's executed acceleration and gap, and the leader's."""
+    from mixed_traffic.physics import integrate
+
+    pos, vel = torch.tensor([25.0, 0.0]), torch.tensor([v_mid, v_mid])  # [leader, car]; no length
+    leader_accel, rows = torch.zeros(1), []
+    for k in range(int(200.0 / dt)):
+        head = amplitude * 2.0 * math.pi / period * math.cos(2.0 * math.pi * k * dt / period)
+        a = base(pos[:1] - pos[1:], vel[1:], vel[:1], leader_accel).reshape(1)
+        pos, vel, executed = integrate(pos, vel, torch.cat([torch.tensor([head]), a]), dt)
+        leader_accel = executed[:1]
+        if k * dt >= 60.0:
+            rows.append((float(executed[1]), float(pos[0] - pos[1]), float(executed[0])))
+    return rows
+
+
+@pytest.mark.parametrize("v_mid, amplitude, period", [(21.5, 2.0, 45.0), (20.5, 1.5, 35.0), (19.5, 2.0, 40.0)])
+def test_fast_band_base_follows_a_sine_above_the_training_speeds_with_less_jerk(v_mid, amplitude, period):
+    """``experiment=ring_lagrangian_ppo_fast_band``: one band law from 18 m/s up (the 20 m/s law's band, gain 0.2
+    1/s) and an IDM of 10-18 m/s that brakes at most 0.3 m/s^2 beyond its leader's braking plus 0.2. Behind sines at
+    17.5-23.5 m/s (the residual fades out from 18 m/s, so the base drives there alone) the total variation of its
+    acceleration is at least 5 % below ``smooth_stop``'s base (whose sine through 18-20 m/s meets IDM's braking at
+    each trough), below the leader's own where the sine stays at or above 19 m/s, with the gap inside [5, 40] m."""
+    from mixed_traffic import make_env
+    from mixed_traffic.config import compose
+    from mixed_traffic.training.builders import residual_base
+    from mixed_traffic.validation import validate_config
+    from tests.test_config import assert_differs_only_in
+
+    smooth, fast = (validate_config(compose([f"experiment=ring_lagrangian_ppo_{n}"])) for n in ("smooth_stop", "fast_band"))
+    r = "transforms.residual."
+    assert_differs_only_in(fast, smooth, {r + "high_speed.brake_floor": 0.3, r + "high_speed.brake_margin": 0.2,
+                                          r + "top_speed.params.kv": 0.2, r + "top_speed.params.match_gap_min": 6.1,
+                                          r + "top_speed.params.match_gap_max": 35.0,
+                                          r + "top_speed.params.ks_edge": 0.077, r + "beyond_speed.params.kv": 0.2})
+    env = make_env("ring", batch_size=1, seed=0)
+    tv = {}
+    for name, c in (("smooth", smooth), ("fast", fast)):
+        rows = _behind_a_sine_leader(residual_base(c.transforms.residual, env, deploy=False).module, v_mid, amplitude,
+                                     period)
+        tv[name] = sum(abs(b[0] - a[0]) for a, b in zip(rows, rows[1:]))
+        tv_leader = sum(abs(b[2] - a[2]) for a, b in zip(rows, rows[1:]))
+        assert 5.0 < min(g for _, g, _ in rows) and max(g for _, g, _ in rows) < 40.0, name
+    assert tv["fast"] < 0.95 * tv["smooth"], tv
+    if v_mid - amplitude >= 19.0:
+        assert tv["fast"] < tv_leader, (tv, tv_leader)
+
+
 def test_stand_arrival_lowers_the_command_only_near_the_envelopes_edge_at_low_speed_behind_a_braking_leader():
     """``StoppingEnvelope(stand_gap=...)``: the command is the plain envelope's above ``stand_speeds[1]``, with
     ``stand_slack`` metres of margin or more, and behind a leader that does not brake (the term asks for almost

@@ -1,6 +1,6 @@
 """``mt-main`` (``make run``): train Lagrangian PPO on the ring, evaluate it, write the report.
 
-    mt-main                       # experiment=ring_lagrangian_ppo_smooth_stop (DEFAULT_EXPERIMENT), seed 0
+    mt-main                       # experiment=ring_lagrangian_ppo_fast_band (DEFAULT_EXPERIMENT), seed 0
     mt-main seed=1                # any Hydra override works as for mt-train
     MT_SMALL_BUDGET=1 mt-main     # a quick pass through the whole pipeline (minutes -> seconds)
 
@@ -20,7 +20,7 @@ from mixed_traffic.config import CONFIG_NAME, CONFIG_PATH, register_configs
 from mixed_traffic.validation import guarded, run_cli
 
 register_configs()
-DEFAULT_EXPERIMENT = "ring_lagrangian_ppo_smooth_stop"  # docs/results.md, "Stops that end on a constant deceleration"
+DEFAULT_EXPERIMENT = "ring_lagrangian_ppo_fast_band"  # docs/results.md, "One band law above 18 m/s"
 
 
 def small_budget() -> bool:
