@@ -281,6 +281,29 @@ lost most of the sines and one of the steps:
 - ``sine_20_p35_humans_20pct``: ``sine`` at 20.5 +- 1.5 m/s, period 35 s, with the humans' parameters spread
   +-20 %.
 
+Nine more (``--cases fresh_18``), fixed after fresh_17 and fresh_17_fast were scored and before anything ran on
+them: an eleventh out-of-sample set, the test of any change made after fresh_17; the same mix:
+
+- ``sine_13_p45_ring_280``: ``sine`` at 13 +- 2.5 m/s, period 45 s, on a 280 m ring;
+- ``sine_8_p35``: ``sine`` at 8 +- 2 m/s, period 35 s;
+- ``ramps_4_12``: ``random_ramps`` at 4-12 m/s;
+- ``ramps_9_17_humans_15pct``: ``random_ramps`` at 9-17 m/s with the humans' parameters spread +-15 %;
+- ``perturbation_16_ring_330``: ``random_perturbation`` around 16 m/s, +-2 m/s knots every 7 s, on a 330 m ring;
+- ``steps_5_13``: ``random_steps`` at 5-13 m/s, period 18 s;
+- ``random_stops_short_stands``: ``random_stop_and_go`` with holds of 6-14 s at 7-13 m/s, stands of 1-4 s, braking
+  and driving off at 1.5-2.5 m/s^2;
+- ``brake_from_14_mid_ring_300``: ``emergency_brake`` from 14 m/s down to 0 m/s at 90 s, on a 300 m ring;
+- ``ramps_19_23``: ``random_ramps`` at 19-23 m/s, through the training range's top.
+
+Four more (``--cases fresh_18_fast``), fixed with fresh_18 and before anything ran on them, all above the training
+range, aimed at the ground fresh_17_fast left weakest (sines above it, heads that climb through 20-26 m/s):
+
+- ``sine_21_p48``: ``sine`` at 21.5 +- 2.5 m/s, period 48 s;
+- ``ramps_17_26``: ``random_ramps`` at 17-26 m/s, across the speeds where the residual fades out;
+- ``steps_20_26_humans_15pct``: ``random_steps`` at 20-26 m/s, period 25 s, with the humans' parameters spread
+  +-15 %;
+- ``perturbation_23_ring_300``: ``random_perturbation`` around 23 m/s, +-2.5 m/s knots every 6 s, on a 300 m ring.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -655,6 +678,35 @@ def cases(seconds: float) -> dict[str, dict]:
                                                                          "period": 8.0}},
         "sine_20_p35_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 20.5, "amplitude": 1.5, "period": 35.0},
                                      "eval": {"hdv_param_noise": 0.2}},
+        # fresh_18 and fresh_18_fast: fixed on 2026-12-01 after fresh_17 / fresh_17_fast were scored, before anything
+        # ran on them: an eleventh out-of-sample set and a second set above the training range, the test of any change
+        # made after fresh_17
+        "sine_13_p45_ring_280": {"profile": "sine", "kwargs": {"v_star": 13.0, "amplitude": 2.5, "period": 45.0},
+                                 "env": {"ring_length": 280.0}},
+        "sine_8_p35": {"profile": "sine", "kwargs": {"v_star": 8.0, "amplitude": 2.0, "period": 35.0}},
+        "ramps_4_12": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 12.0}},
+        "ramps_9_17_humans_15pct": {"profile": "random_ramps", "kwargs": {"v_low": 9.0, "v_high": 17.0},
+                                    "eval": {"hdv_param_noise": 0.15}},
+        "perturbation_16_ring_330": {"profile": "random_perturbation", "kwargs": {"v_star": 16.0, "amplitude": 2.0,
+                                                                                  "period": 7.0},
+                                     "env": {"ring_length": 330.0}},
+        "steps_5_13": {"profile": "random_steps", "kwargs": {"v_low": 5.0, "v_high": 13.0, "period": 18.0,
+                                                             "v_init": 9.0}},
+        "random_stops_short_stands": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 7.0, "v_high": 13.0, "hold_min": 6.0, "hold_max": 14.0, "stop_min": 1.0, "stop_max": 4.0,
+            "rate_min": 1.5, "rate_max": 2.5}},
+        "brake_from_14_mid_ring_300": {"profile": "emergency_brake", "kwargs": {"start": 90.0, "v_cruise": 14.0,
+                                                                                "v_low": 0.0},
+                                       "env": {"ring_length": 300.0}},
+        "ramps_19_23": {"profile": "random_ramps", "kwargs": {"v_low": 19.0, "v_high": 23.0}},
+        "sine_21_p48": {"profile": "sine", "kwargs": {"v_star": 21.5, "amplitude": 2.5, "period": 48.0}},
+        "ramps_17_26": {"profile": "random_ramps", "kwargs": {"v_low": 17.0, "v_high": 26.0}},
+        "steps_20_26_humans_15pct": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 26.0,
+                                                                           "period": 25.0, "v_init": 23.0},
+                                     "eval": {"hdv_param_noise": 0.15}},
+        "perturbation_23_ring_300": {"profile": "random_perturbation", "kwargs": {"v_star": 23.0, "amplitude": 2.5,
+                                                                                  "period": 6.0},
+                                     "env": {"ring_length": 300.0}},
     }
 
 
@@ -695,13 +747,16 @@ FRESH_16 = ("sine_14_p50_ring_270", "sine_12_p35", "ramps_4_13", "ramps_9_16_rin
 FRESH_17 = ("sine_15_p40_ring_300", "sine_10_p50", "ramps_6_14_ring_260", "ramps_11_18", "perturbation_13_humans_25pct",
             "steps_8_16_ring_280", "random_stops_varied", "brake_from_13_late_ring_320", "ramps_21_25")
 FRESH_17_FAST = ("sine_22_p55", "steps_21_25_ring_290", "perturbation_22", "sine_20_p35_humans_20pct")
+FRESH_18 = ("sine_13_p45_ring_280", "sine_8_p35", "ramps_4_12", "ramps_9_17_humans_15pct", "perturbation_16_ring_330",
+            "steps_5_13", "random_stops_short_stands", "brake_from_14_mid_ring_300", "ramps_19_23")
+FRESH_18_FAST = ("sine_21_p48", "ramps_17_26", "steps_20_26_humans_15pct", "perturbation_23_ring_300")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
           "fresh_15": FRESH_15, "fresh_16": FRESH_16, "fresh_17": FRESH_17,
-          "fresh_17_fast": FRESH_17_FAST, "training": TRAINING}
+          "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
