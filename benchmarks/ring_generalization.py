@@ -304,6 +304,29 @@ range, aimed at the ground fresh_17_fast left weakest (sines above it, heads tha
   +-15 %;
 - ``perturbation_23_ring_300``: ``random_perturbation`` around 23 m/s, +-2.5 m/s knots every 6 s, on a 300 m ring.
 
+Nine more (``--cases fresh_19``), fixed after fresh_18 and fresh_18_fast were scored and before anything ran on
+them: a twelfth out-of-sample set, the test of any change made after fresh_18; the same mix:
+
+- ``sine_14_p40_ring_290``: ``sine`` at 14 +- 2 m/s, period 40 s, on a 290 m ring;
+- ``sine_11_p50_humans_20pct``: ``sine`` at 11 +- 2.5 m/s, period 50 s, with the humans' parameters spread +-20 %;
+- ``ramps_5_15_ring_270``: ``random_ramps`` at 5-15 m/s on a 270 m ring;
+- ``ramps_12_19``: ``random_ramps`` at 12-19 m/s;
+- ``perturbation_14_p8``: ``random_perturbation`` around 14 m/s, +-2 m/s knots every 8 s;
+- ``steps_9_17_ring_310``: ``random_steps`` at 9-17 m/s, period 22 s, on a 310 m ring;
+- ``random_stops_mid_holds``: ``random_stop_and_go`` with holds of 10-20 s at 9-15 m/s, stands of 2-8 s, braking
+  and driving off at 1.4-2.2 m/s^2;
+- ``brake_from_12_ring_280``: ``emergency_brake`` from 12 m/s down to 0 m/s at 100 s, on a 280 m ring;
+- ``steps_18_22``: ``random_steps`` at 18-22 m/s, period 20 s, across the training range's top.
+
+Four more (``--cases fresh_19_fast``), fixed with fresh_19 and before anything ran on them, above the training range
+and across the speeds where the residual fades out (18-20 m/s), the ground fresh_18_fast left weakest:
+
+- ``sine_20_p45``: ``sine`` at 20.5 +- 2 m/s, period 45 s;
+- ``ramps_16_25_ring_300``: ``random_ramps`` at 16-25 m/s on a 300 m ring;
+- ``steps_17_24``: ``random_steps`` at 17-24 m/s, period 24 s;
+- ``perturbation_20_humans_20pct``: ``random_perturbation`` around 20.5 m/s, +-2 m/s knots every 7 s, with the
+  humans' parameters spread +-20 %.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -707,6 +730,37 @@ def cases(seconds: float) -> dict[str, dict]:
         "perturbation_23_ring_300": {"profile": "random_perturbation", "kwargs": {"v_star": 23.0, "amplitude": 2.5,
                                                                                   "period": 6.0},
                                      "env": {"ring_length": 300.0}},
+        # fresh_19 and fresh_19_fast: fixed on 2026-12-01 after fresh_18 / fresh_18_fast were scored, before anything
+        # ran on them: a twelfth out-of-sample set and a third set above the training range, the test of any change
+        # made after fresh_18
+        "sine_14_p40_ring_290": {"profile": "sine", "kwargs": {"v_star": 14.0, "amplitude": 2.0, "period": 40.0},
+                                 "env": {"ring_length": 290.0}},
+        "sine_11_p50_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 11.0, "amplitude": 2.5, "period": 50.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
+        "ramps_5_15_ring_270": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 15.0},
+                                "env": {"ring_length": 270.0}},
+        "ramps_12_19": {"profile": "random_ramps", "kwargs": {"v_low": 12.0, "v_high": 19.0}},
+        "perturbation_14_p8": {"profile": "random_perturbation", "kwargs": {"v_star": 14.0, "amplitude": 2.0,
+                                                                            "period": 8.0}},
+        "steps_9_17_ring_310": {"profile": "random_steps", "kwargs": {"v_low": 9.0, "v_high": 17.0, "period": 22.0,
+                                                                      "v_init": 13.0},
+                                "env": {"ring_length": 310.0}},
+        "random_stops_mid_holds": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 9.0, "v_high": 15.0, "hold_min": 10.0, "hold_max": 20.0, "stop_min": 2.0, "stop_max": 8.0,
+            "rate_min": 1.4, "rate_max": 2.2}},
+        "brake_from_12_ring_280": {"profile": "emergency_brake", "kwargs": {"start": 100.0, "v_cruise": 12.0,
+                                                                            "v_low": 0.0},
+                                   "env": {"ring_length": 280.0}},
+        "steps_18_22": {"profile": "random_steps", "kwargs": {"v_low": 18.0, "v_high": 22.0, "period": 20.0,
+                                                              "v_init": 20.0}},
+        "sine_20_p45": {"profile": "sine", "kwargs": {"v_star": 20.5, "amplitude": 2.0, "period": 45.0}},
+        "ramps_16_25_ring_300": {"profile": "random_ramps", "kwargs": {"v_low": 16.0, "v_high": 25.0},
+                                 "env": {"ring_length": 300.0}},
+        "steps_17_24": {"profile": "random_steps", "kwargs": {"v_low": 17.0, "v_high": 24.0, "period": 24.0,
+                                                              "v_init": 20.0}},
+        "perturbation_20_humans_20pct": {"profile": "random_perturbation", "kwargs": {"v_star": 20.5,
+                                                                                      "amplitude": 2.0, "period": 7.0},
+                                         "eval": {"hdv_param_noise": 0.2}},
     }
 
 
@@ -750,13 +804,17 @@ FRESH_17_FAST = ("sine_22_p55", "steps_21_25_ring_290", "perturbation_22", "sine
 FRESH_18 = ("sine_13_p45_ring_280", "sine_8_p35", "ramps_4_12", "ramps_9_17_humans_15pct", "perturbation_16_ring_330",
             "steps_5_13", "random_stops_short_stands", "brake_from_14_mid_ring_300", "ramps_19_23")
 FRESH_18_FAST = ("sine_21_p48", "ramps_17_26", "steps_20_26_humans_15pct", "perturbation_23_ring_300")
+FRESH_19 = ("sine_14_p40_ring_290", "sine_11_p50_humans_20pct", "ramps_5_15_ring_270", "ramps_12_19", "perturbation_14_p8",
+            "steps_9_17_ring_310", "random_stops_mid_holds", "brake_from_12_ring_280", "steps_18_22")
+FRESH_19_FAST = ("sine_20_p45", "ramps_16_25_ring_300", "steps_17_24", "perturbation_20_humans_20pct")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
           "fresh_8": FRESH_8, "fresh_9": FRESH_9, "fresh_10": FRESH_10, "fresh_11": FRESH_11,
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
           "fresh_15": FRESH_15, "fresh_16": FRESH_16, "fresh_17": FRESH_17,
-          "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST, "training": TRAINING}
+          "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST,
+          "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
