@@ -302,7 +302,9 @@ def _check_classic_params(cfg: DictConfig, prefix: str, key: str = "params") -> 
 def parse_deploy_overrides(items) -> list[tuple[str, object]]:
     """``transforms.KEY=VALUE`` items (Hydra's value syntax) as ``(key, value)`` pairs: the deploy-time settings of a
     trained run's transforms (``mt-eval checkpoint=...``, ``ring_generalization.py --set``). ``ConfigError`` naming
-    the item unless it sets a key under ``transforms.``: a trained policy keeps the env it was trained on.
+    the item unless it sets a key under ``transforms.``: a trained policy keeps the env it was trained on. An
+    appended item (``+transforms....``) is taken only for a classical law's parameter (a key under ``params`` or
+    ``fast_params``), where Hydra asks for the ``+`` to add a parameter the run's config does not list.
 
         >>> parse_deploy_overrides(["transforms.residual.drive_off.follow=0.9"])
         [('transforms.residual.drive_off.follow', 0.9)]
@@ -315,7 +317,8 @@ def parse_deploy_overrides(items) -> list[tuple[str, object]]:
             ov = parser.parse_overrides([item])[0]
         except Exception as e:  # Hydra's parse errors: name the item
             raise ConfigError(str(item), f"cannot be parsed ({e})", "transforms.KEY=VALUE") from None
-        if not ov.key_or_group.startswith("transforms.") or ov.is_delete() or ov.is_add():
+        law_param = ov.key_or_group.rpartition(".")[0].endswith((".params", ".fast_params"))
+        if not ov.key_or_group.startswith("transforms.") or ov.is_delete() or (ov.is_add() and not law_param):
             raise ConfigError(str(item), "not a deployed setting of the run's transforms",
                               "transforms.KEY=VALUE (the run's env and policy stay as trained)")
         out.append((ov.key_or_group, ov.value()))
@@ -337,12 +340,13 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
             cfg.transforms[node] = OmegaConf.to_container(schema[node])
     for key, value in pairs:
         parent = key.rpartition(".")[0]
-        is_param = parent.endswith(".params") and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))
+        is_param = (parent.endswith((".params", ".fast_params"))
+                    and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None)))
         if not is_param and OmegaConf.select(cfg, key, default="<missing>") == "<missing>":  # a law's parameter is
             # checked against its model below (validate_config); any other key must exist
             raise ConfigError(key, "not a setting of the run's config",
                               "an existing transforms.* key (see the run's config.yaml), or a classical law's "
-                              "parameter under an existing params")
+                              "parameter under an existing params or fast_params")
         OmegaConf.update(cfg, key, value, merge=False)
     if pairs:
         validate_config(cfg)

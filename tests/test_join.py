@@ -12,7 +12,7 @@ from mixed_traffic import make_env
 from mixed_traffic.config import compose
 from mixed_traffic.controllers.classic import make_classic_policy, stopping_envelope_policy
 from mixed_traffic.training.builders import make_transformed_env
-from mixed_traffic.validation import ConfigError, validate_config, with_deploy_overrides
+from mixed_traffic.validation import ConfigError, parse_deploy_overrides, validate_config, with_deploy_overrides
 from transforms import JoinBlend, ResidualAction
 
 FAR, CLOSE = dict(init_spacing_range=[73.4, 73.4]), dict(init_spacing_range=[15.0, 15.0])
@@ -139,6 +139,17 @@ def test_a_deployed_join_law_takes_parameters_the_run_never_set_and_refuses_typo
         with_deploy_overrides(run, [("transforms.residual.join.base", "idm"), ("transforms.residual.join.params.TT", 1.0)])
     with pytest.raises(ConfigError, match=r"transforms.residual.join.gapp: not a setting of the run's config"):
         with_deploy_overrides(run, [("transforms.residual.join.gapp", 30.0)])
+    # the fast leader's join law (fast_params) takes a parameter the run never set, as params does, and refuses typos
+    fast = validate_config(compose(["experiment=ring_lagrangian_ppo_fast_band"]))
+    cfg = with_deploy_overrides(fast, [("transforms.residual.join.fast_params.b", 1.0)])
+    assert dict(cfg.transforms.residual.join.fast_params) == {"v0": 60.0, "gap_max": 27.0, "b": 1.0}
+    with pytest.raises(ConfigError, match=r"transforms.residual.join.fast_params.bb: is not a idm parameter"):
+        with_deploy_overrides(fast, [("transforms.residual.join.fast_params.bb", 1.0)])
+    # mt-eval passes Hydra's "+" with a parameter the config does not list; only a law's parameter may be appended
+    assert parse_deploy_overrides(["+transforms.residual.join.fast_params.b=1.5"]) == \
+        [("transforms.residual.join.fast_params.b", 1.5)]
+    with pytest.raises(ConfigError, match=r"^\+transforms.residual.join.gapp=30.0: not a deployed setting"):
+        parse_deploy_overrides(["+transforms.residual.join.gapp=30.0"])
 
 
 def test_join_is_cap_hold_with_the_deployed_join_and_nothing_else():
