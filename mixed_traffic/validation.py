@@ -299,6 +299,12 @@ def _check_classic_params(cfg: DictConfig, prefix: str, key: str = "params") -> 
             Real()(f"{prefix}.{key}.{k}", v)
 
 
+def _names_a_law_parameter(key: str) -> bool:
+    """Whether the dotted ``key`` is a classical law's parameter: a key directly under ``params`` or ``fast_params``
+    (checked against the law's model by :func:`validate_config`, not against the keys the config lists)."""
+    return key.rpartition(".")[0].endswith((".params", ".fast_params"))
+
+
 def parse_deploy_overrides(items) -> list[tuple[str, object]]:
     """``transforms.KEY=VALUE`` items (Hydra's value syntax) as ``(key, value)`` pairs: the deploy-time settings of a
     trained run's transforms (``mt-eval checkpoint=...``, ``ring_generalization.py --set``). ``ConfigError`` naming
@@ -317,8 +323,8 @@ def parse_deploy_overrides(items) -> list[tuple[str, object]]:
             ov = parser.parse_overrides([item])[0]
         except Exception as e:  # Hydra's parse errors: name the item
             raise ConfigError(str(item), f"cannot be parsed ({e})", "transforms.KEY=VALUE") from None
-        law_param = ov.key_or_group.rpartition(".")[0].endswith((".params", ".fast_params"))
-        if not ov.key_or_group.startswith("transforms.") or ov.is_delete() or (ov.is_add() and not law_param):
+        appended_ok = not ov.is_add() or _names_a_law_parameter(ov.key_or_group)
+        if not ov.key_or_group.startswith("transforms.") or ov.is_delete() or not appended_ok:
             raise ConfigError(str(item), "not a deployed setting of the run's transforms",
                               "transforms.KEY=VALUE (the run's env and policy stay as trained)")
         out.append((ov.key_or_group, ov.value()))
@@ -340,8 +346,7 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
             cfg.transforms[node] = OmegaConf.to_container(schema[node])
     for key, value in pairs:
         parent = key.rpartition(".")[0]
-        is_param = (parent.endswith((".params", ".fast_params"))
-                    and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None)))
+        is_param = _names_a_law_parameter(key) and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))
         if not is_param and OmegaConf.select(cfg, key, default="<missing>") == "<missing>":  # a law's parameter is
             # checked against its model below (validate_config); any other key must exist
             raise ConfigError(key, "not a setting of the run's config",

@@ -1002,9 +1002,9 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
             assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
             assert (float(v.max()) > 20.5) == (name == above), name
             assert (float(v.min()) == 0.0) == (name in stand), name
-    for group, seed in (("fresh_17_fast", 25000), ("fresh_18_fast", 27000), ("fresh_19_fast", 29000)):  # all above
-        # the training speeds
-        for name in mod.GROUPS[group]:  # none standing still
+    # the fast groups: every case above the training speeds, none standing still
+    for group, seed in (("fresh_17_fast", 25000), ("fresh_18_fast", 27000), ("fresh_19_fast", 29000)):
+        for name in mod.GROUPS[group]:
             v = head_speeds(name, seed)
             assert float(v.min()) > 0.0 and float(v.max()) > 20.5 and float(v.max()) <= 28.0 + 1e-4, name
     fixed = head_speeds("stop_and_go_15", 3000)
