@@ -327,6 +327,28 @@ and across the speeds where the residual fades out (18-20 m/s), the ground fresh
 - ``perturbation_20_humans_20pct``: ``random_perturbation`` around 20.5 m/s, +-2 m/s knots every 7 s, with the
   humans' parameters spread +-20 %.
 
+Nine more (``--cases fresh_20``), fixed after fresh_19 and fresh_19_fast were scored and before anything ran on
+them: a thirteenth out-of-sample set, the test of any change made after fresh_19; the same mix:
+
+- ``sine_15_p55_ring_310``: ``sine`` at 15 +- 2 m/s, period 55 s, on a 310 m ring;
+- ``sine_9_p45_humans_25pct``: ``sine`` at 9 +- 2.5 m/s, period 45 s, with the humans' parameters spread +-25 %;
+- ``ramps_6_14_ring_250``: ``random_ramps`` at 6-14 m/s on a 250 m ring;
+- ``ramps_10_18_ring_290``: ``random_ramps`` at 10-18 m/s on a 290 m ring;
+- ``perturbation_13_ring_260``: ``random_perturbation`` around 13 m/s, +-2 m/s knots every 9 s, on a 260 m ring;
+- ``steps_7_16``: ``random_steps`` at 7-16 m/s, period 20 s;
+- ``random_stops_long_stands``: ``random_stop_and_go`` with holds of 8-16 s at 8-14 m/s, stands of 5-12 s, braking
+  and driving off at 1.2-2.0 m/s^2;
+- ``brake_from_16_ring_320``: ``emergency_brake`` from 16 m/s down to 0 m/s at 80 s, on a 320 m ring;
+- ``ramps_20_24_ring_280``: ``random_ramps`` at 20-24 m/s on a 280 m ring, above the training range.
+
+Four more (``--cases fresh_20_fast``), fixed with fresh_20 and before anything ran on them, above the training range
+and across the speeds where the residual fades out (18-20 m/s):
+
+- ``sine_20_p50``: ``sine`` at 20 +- 2.5 m/s, period 50 s;
+- ``steps_19_25_ring_280``: ``random_steps`` at 19-25 m/s, period 22 s, on a 280 m ring;
+- ``ramps_18_24_humans_15pct``: ``random_ramps`` at 18-24 m/s with the humans' parameters spread +-15 %;
+- ``perturbation_21_p9``: ``random_perturbation`` around 21 m/s, +-2 m/s knots every 9 s.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -761,6 +783,38 @@ def cases(seconds: float) -> dict[str, dict]:
         "perturbation_20_humans_20pct": {"profile": "random_perturbation", "kwargs": {"v_star": 20.5,
                                                                                       "amplitude": 2.0, "period": 7.0},
                                          "eval": {"hdv_param_noise": 0.2}},
+        # fresh_20 and fresh_20_fast: fixed on 2026-12-01 after fresh_19 / fresh_19_fast were scored, before anything
+        # ran on them: a thirteenth out-of-sample set and a fourth set above the training range, the test of any change
+        # made after fresh_19
+        "sine_15_p55_ring_310": {"profile": "sine", "kwargs": {"v_star": 15.0, "amplitude": 2.0, "period": 55.0},
+                                 "env": {"ring_length": 310.0}},
+        "sine_9_p45_humans_25pct": {"profile": "sine", "kwargs": {"v_star": 9.0, "amplitude": 2.5, "period": 45.0},
+                                    "eval": {"hdv_param_noise": 0.25}},
+        "ramps_6_14_ring_250": {"profile": "random_ramps", "kwargs": {"v_low": 6.0, "v_high": 14.0},
+                                "env": {"ring_length": 250.0}},
+        "ramps_10_18_ring_290": {"profile": "random_ramps", "kwargs": {"v_low": 10.0, "v_high": 18.0},
+                                 "env": {"ring_length": 290.0}},
+        "perturbation_13_ring_260": {"profile": "random_perturbation", "kwargs": {"v_star": 13.0, "amplitude": 2.0,
+                                                                                  "period": 9.0},
+                                     "env": {"ring_length": 260.0}},
+        "steps_7_16": {"profile": "random_steps", "kwargs": {"v_low": 7.0, "v_high": 16.0, "period": 20.0,
+                                                             "v_init": 11.0}},
+        "random_stops_long_stands": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 14.0, "hold_min": 8.0, "hold_max": 16.0, "stop_min": 5.0, "stop_max": 12.0,
+            "rate_min": 1.2, "rate_max": 2.0}},
+        "brake_from_16_ring_320": {"profile": "emergency_brake", "kwargs": {"start": 80.0, "v_cruise": 16.0,
+                                                                            "v_low": 0.0},
+                                   "env": {"ring_length": 320.0}},
+        "ramps_20_24_ring_280": {"profile": "random_ramps", "kwargs": {"v_low": 20.0, "v_high": 24.0},
+                                 "env": {"ring_length": 280.0}},
+        "sine_20_p50": {"profile": "sine", "kwargs": {"v_star": 20.0, "amplitude": 2.5, "period": 50.0}},
+        "steps_19_25_ring_280": {"profile": "random_steps", "kwargs": {"v_low": 19.0, "v_high": 25.0, "period": 22.0,
+                                                                       "v_init": 22.0},
+                                 "env": {"ring_length": 280.0}},
+        "ramps_18_24_humans_15pct": {"profile": "random_ramps", "kwargs": {"v_low": 18.0, "v_high": 24.0},
+                                     "eval": {"hdv_param_noise": 0.15}},
+        "perturbation_21_p9": {"profile": "random_perturbation", "kwargs": {"v_star": 21.0, "amplitude": 2.0,
+                                                                            "period": 9.0}},
     }
 
 
@@ -807,6 +861,10 @@ FRESH_18_FAST = ("sine_21_p48", "ramps_17_26", "steps_20_26_humans_15pct", "pert
 FRESH_19 = ("sine_14_p40_ring_290", "sine_11_p50_humans_20pct", "ramps_5_15_ring_270", "ramps_12_19", "perturbation_14_p8",
             "steps_9_17_ring_310", "random_stops_mid_holds", "brake_from_12_ring_280", "steps_18_22")
 FRESH_19_FAST = ("sine_20_p45", "ramps_16_25_ring_300", "steps_17_24", "perturbation_20_humans_20pct")
+FRESH_20 = ("sine_15_p55_ring_310", "sine_9_p45_humans_25pct", "ramps_6_14_ring_250", "ramps_10_18_ring_290",
+            "perturbation_13_ring_260", "steps_7_16", "random_stops_long_stands", "brake_from_16_ring_320",
+            "ramps_20_24_ring_280")
+FRESH_20_FAST = ("sine_20_p50", "steps_19_25_ring_280", "ramps_18_24_humans_15pct", "perturbation_21_p9")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
@@ -814,7 +872,8 @@ _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH
           "fresh_12": FRESH_12, "fresh_13": FRESH_13, "fresh_14": FRESH_14,
           "fresh_15": FRESH_15, "fresh_16": FRESH_16, "fresh_17": FRESH_17,
           "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST,
-          "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "training": TRAINING}
+          "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "fresh_20": FRESH_20,
+          "fresh_20_fast": FRESH_20_FAST, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
