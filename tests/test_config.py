@@ -495,6 +495,17 @@ def test_default_experiment_is_fast_band_and_paced_join_is_apg60_with_a_join_pac
     from mixed_traffic.apps.main_job import DEFAULT_EXPERIMENT
 
     assert DEFAULT_EXPERIMENT == "ring_lagrangian_ppo_fast_band"
+    # fast_band deploys a gentler drive-off follow than smooth_stop (0.8, from 0.9), a deploy-only part: the chain it
+    # trains has no drive-off cap, so the weights are the same
+    from mixed_traffic.training.builders import make_transformed_env
+    from mixed_traffic.validation import validate_config
+    from transforms import DriveOffCap
+
+    fast = validate_config(compose(["experiment=ring_lagrangian_ppo_fast_band"]))
+    assert compose(["experiment=ring_lagrangian_ppo_smooth_stop"]).transforms.residual.drive_off.follow == 0.9
+    trained, deployed = ([t for t in make_transformed_env(fast, num_envs=1, seed=0, deploy=dep).transform
+                          if isinstance(t, DriveOffCap)] for dep in (False, True))
+    assert trained == [] and deployed[0].follow == 0.8
     apg60, paced = (compose([f"experiment=ring_lagrangian_ppo_{n}"]) for n in ("apg60", "paced_join"))
     assert paced.transforms.residual.join.when == "deploy"
     assert_differs_only_in(paced, apg60, {"transforms.residual.join.params.v0": 40.0,

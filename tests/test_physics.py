@@ -744,7 +744,8 @@ def test_fast_band_base_follows_a_sine_above_the_training_speeds_with_less_jerk(
     assert_differs_only_in(fast, smooth, {r + "high_speed.brake_floor": 0.3, r + "high_speed.brake_margin": 0.2,
                                           r + "top_speed.params.kv": 0.2, r + "top_speed.params.match_gap_min": 6.1,
                                           r + "top_speed.params.match_gap_max": 35.0,
-                                          r + "top_speed.params.ks_edge": 0.077, r + "beyond_speed.params.kv": 0.2})
+                                          r + "top_speed.params.ks_edge": 0.077, r + "beyond_speed.params.kv": 0.2,
+                                          r + "drive_off.follow": 0.8})  # the drive-off: deploy-only, not the base
     env = make_env("ring", batch_size=1, seed=0)
     tv = {}
     def head(t: float) -> float:  # the leader's speed v_mid + amplitude sin(2 pi t / period)
