@@ -349,6 +349,29 @@ and across the speeds where the residual fades out (18-20 m/s):
 - ``ramps_18_24_humans_15pct``: ``random_ramps`` at 18-24 m/s with the humans' parameters spread +-15 %;
 - ``perturbation_21_p9``: ``random_perturbation`` around 21 m/s, +-2 m/s knots every 9 s.
 
+Nine more (``--cases fresh_21``), fixed after fresh_20 and fresh_20_fast were scored and before anything ran on
+them: a fourteenth out-of-sample set, the test of any change made after fresh_20; the same mix:
+
+- ``sine_12_p50_ring_300``: ``sine`` at 12 +- 2.5 m/s, period 50 s, on a 300 m ring;
+- ``sine_16_p40_humans_20pct``: ``sine`` at 16 +- 2 m/s, period 40 s, with the humans' parameters spread +-20 %;
+- ``ramps_4_12_ring_270``: ``random_ramps`` at 4-12 m/s on a 270 m ring;
+- ``ramps_9_17_humans_25pct``: ``random_ramps`` at 9-17 m/s with the humans' parameters spread +-25 %;
+- ``perturbation_11_p10_ring_290``: ``random_perturbation`` around 11 m/s, +-2 m/s knots every 10 s, on a 290 m ring;
+- ``steps_8_18_ring_260``: ``random_steps`` at 8-18 m/s, period 18 s, on a 260 m ring;
+- ``random_stops_slow_short_holds``: ``random_stop_and_go`` with holds of 5-10 s at 6-12 m/s, stands of 3-8 s,
+  braking and driving off at 1.0-2.0 m/s^2;
+- ``brake_from_18_ring_300``: ``emergency_brake`` from 18 m/s down to 0 m/s at 60 s, on a 300 m ring;
+- ``steps_20_24_ring_300``: ``random_steps`` at 20-24 m/s, period 25 s, on a 300 m ring, above the training range.
+
+Four more (``--cases fresh_21_fast``), fixed with fresh_21 and before anything ran on them, above the training range
+and across the speeds where the residual fades out (18-20 m/s):
+
+- ``sine_21_p60``: ``sine`` at 21 +- 2.5 m/s, period 60 s;
+- ``steps_18_26_ring_290``: ``random_steps`` at 18-26 m/s, period 20 s, on a 290 m ring;
+- ``ramps_19_25_ring_260``: ``random_ramps`` at 19-25 m/s on a 260 m ring;
+- ``perturbation_22_p8_humans_15pct``: ``random_perturbation`` around 22 m/s, +-2 m/s knots every 8 s, with the
+  humans' parameters spread +-15 %.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -815,6 +838,41 @@ def cases(seconds: float) -> dict[str, dict]:
                                      "eval": {"hdv_param_noise": 0.15}},
         "perturbation_21_p9": {"profile": "random_perturbation", "kwargs": {"v_star": 21.0, "amplitude": 2.0,
                                                                             "period": 9.0}},
+        # fresh_21 and fresh_21_fast: fixed on 2026-12-01 after fresh_20 / fresh_20_fast were scored, before anything
+        # ran on them: a fourteenth out-of-sample set and a fifth set above the training range, the test of any change
+        # made after fresh_20
+        "sine_12_p50_ring_300": {"profile": "sine", "kwargs": {"v_star": 12.0, "amplitude": 2.5, "period": 50.0},
+                                 "env": {"ring_length": 300.0}},
+        "sine_16_p40_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 16.0, "amplitude": 2.0, "period": 40.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
+        "ramps_4_12_ring_270": {"profile": "random_ramps", "kwargs": {"v_low": 4.0, "v_high": 12.0},
+                                "env": {"ring_length": 270.0}},
+        "ramps_9_17_humans_25pct": {"profile": "random_ramps", "kwargs": {"v_low": 9.0, "v_high": 17.0},
+                                    "eval": {"hdv_param_noise": 0.25}},
+        "perturbation_11_p10_ring_290": {"profile": "random_perturbation", "kwargs": {"v_star": 11.0, "amplitude": 2.0,
+                                                                                      "period": 10.0},
+                                         "env": {"ring_length": 290.0}},
+        "steps_8_18_ring_260": {"profile": "random_steps", "kwargs": {"v_low": 8.0, "v_high": 18.0, "period": 18.0,
+                                                                      "v_init": 13.0},
+                                "env": {"ring_length": 260.0}},
+        "random_stops_slow_short_holds": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 6.0, "v_high": 12.0, "hold_min": 5.0, "hold_max": 10.0, "stop_min": 3.0, "stop_max": 8.0,
+            "rate_min": 1.0, "rate_max": 2.0}},
+        "brake_from_18_ring_300": {"profile": "emergency_brake", "kwargs": {"start": 60.0, "v_cruise": 18.0,
+                                                                            "v_low": 0.0},
+                                   "env": {"ring_length": 300.0}},
+        "steps_20_24_ring_300": {"profile": "random_steps", "kwargs": {"v_low": 20.0, "v_high": 24.0, "period": 25.0,
+                                                                       "v_init": 22.0},
+                                 "env": {"ring_length": 300.0}},
+        "sine_21_p60": {"profile": "sine", "kwargs": {"v_star": 21.0, "amplitude": 2.5, "period": 60.0}},
+        "steps_18_26_ring_290": {"profile": "random_steps", "kwargs": {"v_low": 18.0, "v_high": 26.0, "period": 20.0,
+                                                                       "v_init": 22.0},
+                                 "env": {"ring_length": 290.0}},
+        "ramps_19_25_ring_260": {"profile": "random_ramps", "kwargs": {"v_low": 19.0, "v_high": 25.0},
+                                 "env": {"ring_length": 260.0}},
+        "perturbation_22_p8_humans_15pct": {"profile": "random_perturbation", "kwargs": {"v_star": 22.0,
+                                                                                         "amplitude": 2.0, "period": 8.0},
+                                            "eval": {"hdv_param_noise": 0.15}},
     }
 
 
@@ -865,6 +923,10 @@ FRESH_20 = ("sine_15_p55_ring_310", "sine_9_p45_humans_25pct", "ramps_6_14_ring_
             "perturbation_13_ring_260", "steps_7_16", "random_stops_long_stands", "brake_from_16_ring_320",
             "ramps_20_24_ring_280")
 FRESH_20_FAST = ("sine_20_p50", "steps_19_25_ring_280", "ramps_18_24_humans_15pct", "perturbation_21_p9")
+FRESH_21 = ("sine_12_p50_ring_300", "sine_16_p40_humans_20pct", "ramps_4_12_ring_270", "ramps_9_17_humans_25pct",
+            "perturbation_11_p10_ring_290", "steps_8_18_ring_260", "random_stops_slow_short_holds",
+            "brake_from_18_ring_300", "steps_20_24_ring_300")
+FRESH_21_FAST = ("sine_21_p60", "steps_18_26_ring_290", "ramps_19_25_ring_260", "perturbation_22_p8_humans_15pct")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
@@ -873,7 +935,8 @@ _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH
           "fresh_15": FRESH_15, "fresh_16": FRESH_16, "fresh_17": FRESH_17,
           "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST,
           "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "fresh_20": FRESH_20,
-          "fresh_20_fast": FRESH_20_FAST, "training": TRAINING}
+          "fresh_20_fast": FRESH_20_FAST, "fresh_21": FRESH_21, "fresh_21_fast": FRESH_21_FAST,
+          "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
