@@ -142,8 +142,15 @@ def main(argv=None) -> dict:
     from mixed_traffic.config import compose
     from mixed_traffic.controllers.classic import make_classic_policy
     from mixed_traffic.evaluation.policies import residual_base_factory
-    from mixed_traffic.evaluation.replay import DriveOffLaw, record_head_traces, replay, replay_settings, stack_traces
-    from mixed_traffic.training.builders import drive_off_cap, residual_base
+    from mixed_traffic.evaluation.replay import (
+        AnswerLaw,
+        DriveOffLaw,
+        record_head_traces,
+        replay,
+        replay_settings,
+        stack_traces,
+    )
+    from mixed_traffic.training.builders import committed_answer, drive_off_cap, residual_base
     from mixed_traffic.validation import validate_config
 
     torch.set_num_threads(1)
@@ -170,6 +177,9 @@ def main(argv=None) -> dict:
         if a.classic is None:
             rcfg = config(extra).transforms.residual
             base = residual_base(rcfg, env).module.double()
+            answer = committed_answer(rcfg, env)  # the deployed chain's committed answer over the base, with its memory
+            if answer is not None:
+                base = AnswerLaw(base, answer.double())
             cap = drive_off_cap(rcfg, env)  # the deployed chain's drive-off cap over the base, with its memory
             return base if cap is None else DriveOffLaw(base, cap)
         params = {**classic_set, **{k: float(v) for k, v in (o.split("=", 1) for o in extra)}}

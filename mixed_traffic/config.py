@@ -288,6 +288,31 @@ class DriveOffConfig:
 
 
 @dataclass
+class AnswerConfig:
+    """``transforms.residual.answer``: above ``speeds`` (``[v_off, v_on]`` m/s, by the CAV's own speed, linearly
+    between) the command is the committed answer (:class:`transforms.CommittedAnswer`, placed between the join and
+    the residual): a speed difference beyond ``start`` (m/s) starts an answer with a time to go of ``horizon`` (s)
+    that counts down, commanding ``dv / max(time to go, horizon_min)`` (behind a step: one acceleration held for
+    ``horizon - horizon_min`` s, then eased off), ended when ``dv`` has closed to ``done`` (m/s); the
+    gap floats inside ``gaps`` (``[low, high]`` m; the constant acceleration that matches the leader at the edge
+    ahead where that asks for more, ``ks_edge`` (1/s^2) beyond them), bounded by an IDM term (``idm``: ``v0``,
+    ``T``, ``a``, ``b``, ``s0``; null: none) and by the base's stopping envelope (``stop_gap`` and its arrival and
+    stand terms; none where the base has no ``stop_gap``). ``when``: ``deploy`` (only where the policy is evaluated
+    or deployed, as ``catch_up.when``) or ``always``. ``horizon`` null (the default): off.
+    """
+
+    horizon: float | None = None  # s; null: off
+    horizon_min: float = 3.0  # s
+    start: float = 0.3  # m/s
+    done: float = 0.05  # m/s
+    gaps: Any = field(default_factory=lambda: [6.1, 35.0])  # [low, high] (m)
+    ks_edge: float = 0.077  # 1/s^2
+    speeds: Any = field(default_factory=lambda: [18.0, 20.0])  # [v_off, v_on] (m/s)
+    idm: Any = field(default_factory=lambda: {"v0": 60.0, "T": 0.3, "a": 1.834, "b": 5.0, "s0": 4.571})
+    when: str = "deploy"  # "always" or "deploy"
+
+
+@dataclass
 class JoinConfig:
     """``transforms.residual.join``: a CAV that starts farther than ``gap`` (m) behind its leader joins it under a
     classical law (``base`` with ``params``, as :func:`mixed_traffic.controllers.classic.make_classic_policy` takes
@@ -376,6 +401,7 @@ class ResidualConfig:
     stand_arrival: StandArrivalConfig = field(default_factory=StandArrivalConfig)
     drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
     join: JoinConfig = field(default_factory=JoinConfig)
+    answer: AnswerConfig = field(default_factory=AnswerConfig)
     stop_gap: float | None = None  # m, > 0; null: no stopping envelope on the base
     arrive_gain: float | None = None  # 1/s^2, > 0: the base's law held below an arrival at stop_gap; null: off
     # the envelope's measurement margins (m, m/s), as the safety layer's (eval.sensor_noise_margin sets them)

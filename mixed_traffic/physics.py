@@ -202,6 +202,43 @@ def _is(setting: Num, value: float) -> bool:
     return isinstance(setting, (int, float)) and setting == value
 
 
+def committed_answer_accel(gap: Tensor, v: Tensor, v_leader: Tensor, tau: Tensor, sign: Tensor, *, horizon: float,
+                           horizon_min: float, start: float, done: float, gaps: tuple[float, float], ks_edge: float,
+                           dt: float) -> tuple[Tensor, Tensor, Tensor]:
+    """One step of the committed answer: ``(accel, tau, sign)`` from the state ``(tau, sign)`` before it.
+
+    The answer to a change of the leader's speed is one acceleration, held while a time to go runs. Once the speed
+    difference ``dv = v_leader - v`` exceeds ``start`` (m/s) while no answer runs (``sign`` 0), an answer starts:
+    ``sign`` takes ``dv``'s sign and the time to go ``tau`` is set to ``horizon`` (s), then counts down by ``dt``
+    each step. The command is ``dv / max(tau, horizon_min)``: behind a step of the leader ``dv`` and ``tau`` fall in
+    proportion, so the command holds ``dv0 / horizon`` for ``horizon - horizon_min`` seconds (it would match the
+    speeds in ``horizon`` seconds), and then eases off with a gain of ``1 / horizon_min`` on what is left of
+    ``dv``; behind a leader that keeps changing its speed the gain firms up to ``1 / horizon_min``. The answer ends
+    (``sign`` 0, command 0) once ``dv`` has closed to ``done`` or changed sign. Where keeping the gap inside
+    ``gaps = (low, high)`` (m) asks for more, the command is the constant acceleration that matches the leader's
+    speed just at the edge ahead, ``dv |dv| / (2 room)`` (room floored at 1 m, :func:`soft_follower_accel`'s band
+    term), and beyond the edges ``ks_edge`` (1/s^2) pulls the gap back.
+
+    The causal least-jerk bound (:func:`mixed_traffic.evaluation.oracle.causal_least_jerk`) drives behind steps of
+    the head this way; a law of the present state alone cannot, since holding an acceleration until the speeds
+    match needs to remember when the answer began.
+    """
+    dv = v_leader - v
+    begin = (sign == 0) & (dv.abs() > start)
+    tau = torch.where(begin, torch.full_like(tau, horizon), tau)
+    sign = torch.where(begin, torch.sign(dv), sign)
+    sign = torch.where((sign != 0) & (dv * sign < done), torch.zeros_like(sign), sign)
+    running = sign != 0
+    a = torch.where(running, dv / tau.clamp_min(horizon_min), torch.zeros_like(dv))
+    tau = torch.where(running, tau - dt, tau)
+    low, high = gaps
+    room = torch.where(dv > 0, high - gap, gap - low).clamp_min(1.0)
+    match = dv * dv.abs() / (2.0 * room)
+    a = torch.where(match.abs() > a.abs(), match, a)
+    a = a + ks_edge * ((gap - high).clamp_min(0.0) - (low - gap).clamp_min(0.0))
+    return a, tau, sign
+
+
 def stop_arrival_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, stand_gap: Num,
                        max_brake: Num = math.inf, min_brake: float = 1e-3) -> Tensor:
     """``-v^2 / (2 R)``, ``R = gap + v_leader^2 / (2 b_l) - stand_gap``, ``b_l = clip(-a_leader, min_brake,

@@ -162,6 +162,12 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.join.fade": Real(0, 600, lo_open=True),
     "transforms.residual.join.seconds": Real(0, 3600, lo_open=True, optional=True),
     "transforms.residual.join.when": OneOf(("always", "deploy")),
+    "transforms.residual.answer.horizon": Real(0, 120, lo_open=True, optional=True),
+    "transforms.residual.answer.horizon_min": Real(0, 120, lo_open=True),
+    "transforms.residual.answer.start": Real(0, 10),
+    "transforms.residual.answer.done": Real(0, 10),
+    "transforms.residual.answer.ks_edge": Real(0, 5),
+    "transforms.residual.answer.when": OneOf(("always", "deploy")),
     "transforms.jerk_limit.max_jerk": Real(0, lo_open=True),
     "transforms.jerk_penalty.weight": Real(0),
     "transforms.discretizer.state_bins": Int(2),
@@ -340,10 +346,20 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     nodes = [key.split(".")[1] for key, _ in pairs if key.count(".") >= 2]
     nodes += [n for key, value in pairs if key == "transforms.chain" and isinstance(value, list) for n in value]
     missing = [n for n in nodes if isinstance(n, str) and n not in (cfg.get("transforms") or {})]
-    if missing and cfg.get("transforms") is not None:
-        schema = OmegaConf.structured(TransformsConfig)
+    schema = OmegaConf.structured(TransformsConfig) if cfg.get("transforms") is not None else None
+    if missing and schema is not None:
         for node in (n for n in missing if n in schema):
             cfg.transforms[node] = OmegaConf.to_container(schema[node])
+    if schema is not None:  # a node added inside a transform's settings since the run was trained (e.g.
+        for key, _ in pairs:  # transforms.residual.answer): the schema's node, with its defaults
+            parts = key.split(".")[1:-1]
+            for depth in range(2, len(parts) + 1):
+                path = ".".join(parts[:depth])
+                node = OmegaConf.select(schema, path, default=None)
+                if (OmegaConf.select(cfg.transforms, ".".join(parts[:depth - 1]), default=None) is not None
+                        and OmegaConf.select(cfg.transforms, path, default="<missing>") == "<missing>"
+                        and OmegaConf.is_dict(node)):
+                    OmegaConf.update(cfg.transforms, path, OmegaConf.to_container(node), merge=False)
     for key, value in pairs:
         parent = key.rpartition(".")[0]
         is_param = _names_a_law_parameter(key) and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))
@@ -419,6 +435,23 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     _check_ordered_pair(cfg, "transforms.residual.stand_arrival.speeds", "[full, none] with 0 <= full < none (m/s)")
+    if OmegaConf.select(cfg, "transforms.residual.answer.horizon", default=None) is not None:
+        ans = OmegaConf.select(cfg, "transforms.residual.answer")
+        _check_ordered_pair(cfg, "transforms.residual.answer.gaps", "[low, high] with 0 <= low < high (m)")
+        _check_ordered_pair(cfg, "transforms.residual.answer.speeds", "[v_off, v_on] with 0 <= v_off < v_on (m/s)")
+        if not ans.horizon_min <= ans.horizon:
+            raise ConfigError("transforms.residual.answer.horizon_min", f"{ans.horizon_min} > horizon {ans.horizon}",
+                              "0 < horizon_min <= horizon (s)")
+        if not ans.done <= ans.start:
+            raise ConfigError("transforms.residual.answer.done", f"{ans.done} > start {ans.start}",
+                              "0 <= done <= start (m/s)")
+        if ans.get("idm") is not None:
+            idm_keys = ("v0", "T", "a", "b", "s0")
+            for k, v in ans.idm.items():
+                if k not in idm_keys:
+                    raise ConfigError(f"transforms.residual.answer.idm.{k}", "is not an IDM term's parameter",
+                                      str(list(idm_keys)))
+                Real(0, 1000, lo_open=k != "s0")(f"transforms.residual.answer.idm.{k}", v)
     for key in SPEED_LAWS:
         node = OmegaConf.select(cfg, f"transforms.residual.{key}", default=None)
         if node is not None and node.get("base") is not None:  # null base: the schedule is off

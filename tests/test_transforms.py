@@ -350,7 +350,8 @@ def test_residual_room_key_fades_an_accelerating_residual_to_the_room_the_base_l
 @pytest.mark.parametrize("module", [
     "transforms.safety_layer", "transforms.lagrangian", "transforms.rewards", "transforms.discretizer",
     "transforms.residual", "transforms.counterfactual_reward", "transforms.intervention_cost", "transforms.jerk_penalty", "losses.lagrangian_ppo", "losses.bc", "losses.residual", "losses.qlearning",
-    "losses.dqn", "mixed_traffic.profiles", "mixed_traffic.evaluation",
+    "losses.dqn", "mixed_traffic.profiles", "mixed_traffic.evaluation", "transforms.committed_answer",
+    "mixed_traffic.evaluation.replay",
 ])
 def test_docstring_examples_run(module):
     import doctest

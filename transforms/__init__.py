@@ -5,6 +5,7 @@
 
 from transforms.barrier_force import BarrierForce
 from transforms.blend import ControllerBlend
+from transforms.committed_answer import CommittedAnswer
 from transforms.conflict_cost import ConflictCost
 from transforms.counterfactual_reward import CounterfactualReward
 from transforms.deeplcc_history import DeePLCCHistory
@@ -45,6 +46,7 @@ __all__ = [
     "V2VChannel",
     "SensorNoise",
     "MeasurementFilter",
+    "CommittedAnswer",
     "DriveOffCap",
     "JoinBlend",
     "OnboardLeaderAccel",

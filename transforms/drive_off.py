@@ -34,7 +34,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from transforms.safety_layer import safe_accel_upper
-from transforms.specs import carry_to_next, entries_or_none, kept_rows
+from transforms.specs import carry_to_next, entries_or_none, reset_state
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
@@ -177,14 +177,8 @@ class DriveOffCap(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         v = tensordict_reset.get(SPEED)
-        engaged, calm = torch.zeros_like(v, dtype=torch.bool), torch.zeros_like(v)
-        keep = kept_rows(tensordict, v, ENGAGED)
-        if keep is not None:  # rows not reset keep their state
-            engaged = torch.where(keep, tensordict.get(ENGAGED), engaged)
-            calm = torch.where(keep, tensordict.get(CALM), calm)
-        tensordict_reset.set(ENGAGED, engaged)
-        tensordict_reset.set(CALM, calm)
-        return tensordict_reset
+        return reset_state(tensordict, tensordict_reset,
+                           {ENGAGED: torch.zeros_like(v, dtype=torch.bool), CALM: torch.zeros_like(v)})
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         return next_tensordict  # everything happens in _inv_call / _step / _reset

@@ -86,6 +86,17 @@ def kept_rows(tensordict, like: torch.Tensor, state_key) -> torch.Tensor | None:
     return (~mask.reshape(*mask.shape[:nb], *([1] * (like.dim() - nb)))).expand_as(like)
 
 
+def reset_state(tensordict, tensordict_reset, fresh: dict):
+    """Sets a transform's state entries ``fresh`` (``{key: value at a fresh start}``) in ``tensordict_reset``, keeping
+    the old value on the rows a partial reset leaves alone (:func:`kept_rows`); returns ``tensordict_reset``."""
+    for key, value in fresh.items():
+        keep = kept_rows(tensordict, value, key)
+        if keep is not None:
+            value = torch.where(keep, tensordict.get(key).to(value), value)
+        tensordict_reset.set(key, value)
+    return tensordict_reset
+
+
 def profile_table(owner: str, field: str, values: dict, kinds) -> torch.Tensor:
     """One value per profile name of ``kinds`` (NaN where ``values`` has none), validated: a non-empty
     mapping from names in ``kinds`` to values > 0; ``owner`` and ``field`` name it in the error."""

@@ -139,6 +139,44 @@ class DriveOffLaw(torch.nn.Module):
         return executed
 
 
+class AnswerLaw(torch.nn.Module):
+    """``law`` followed by a :class:`transforms.CommittedAnswer`, as the deployed chain applies it, replayable: the
+    answer's state (time to go, sign) lives in the module and :func:`replay` clears it at the start of each replay.
+    Put a :class:`DriveOffLaw` around it for a chain that also caps the drive-off (the cap acts last).
+
+        >>> from mixed_traffic import make_env
+        >>> from mixed_traffic.controllers.classic import make_classic_policy
+        >>> from transforms import CommittedAnswer
+        >>> law = AnswerLaw(make_classic_policy("idm", make_env("ring", batch_size=1, seed=0)).module,
+        ...                 CommittedAnswer(speeds=(0.0, 1.0)))
+        >>> law.reset_state(); law(torch.tensor([20.0]), torch.tensor([20.0]), torch.tensor([21.0]))  # 1 m/s over 6 s
+        tensor([0.1667])
+    """
+
+    def __init__(self, law, answer):
+        super().__init__()
+        self.law, self.answer = law, answer
+        self.reset_state()
+
+    @property
+    def reads_leader_accel(self) -> bool:
+        return reads_leader_accel(self.law) or self.answer.reads_leader_accel
+
+    def reset_state(self) -> None:
+        self._tau = self._sign = None
+        if hasattr(self.law, "reset_state"):
+            self.law.reset_state()
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor, *extra) -> torch.Tensor:
+        a = self.law(gap, speed, leader_speed, *(extra if reads_leader_accel(self.law) else ()))
+        if self._tau is None or self._tau.shape != a.shape:
+            self._tau, self._sign = torch.zeros_like(a), torch.zeros_like(a)
+        leader_accel = extra[0].to(a) if self.answer.reads_leader_accel else None
+        executed, self._tau, self._sign = self.answer.apply(a, gap.to(a), speed.to(a), leader_speed.to(a), self._tau,
+                                                            self._sign, leader_accel)
+        return executed
+
+
 def replay(law, trace: Trace, *, dt: float, low: float, high: float, warmup: float, settle: float,
            integration: str = "euler") -> dict[str, torch.Tensor]:
     """The CAV driven by ``law`` behind ``trace``'s head, from the recorded start state.

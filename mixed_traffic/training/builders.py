@@ -278,6 +278,32 @@ def join_blend(rcfg, env, *, deploy: bool = True):
                      dt=float(env.scenario.dt))
 
 
+def committed_answer(rcfg, env, *, deploy: bool = True):
+    """The :class:`transforms.CommittedAnswer` of ``transforms.residual.answer`` (``rcfg``: the ``residual`` node) for
+    ``env``, or None when its ``horizon`` is null (off) or it is deploy-only and ``deploy`` is False. It is bounded by
+    the base's stopping envelope (``stop_gap`` with the base's arrival and stand terms and measurement margins), none
+    where the base has no ``stop_gap``."""
+    from tensordict.nn import TensorDictModule
+
+    from mixed_traffic.controllers.classic import stopping_envelope_policy
+    from transforms import CommittedAnswer
+    from transforms.committed_answer import GAP, LEADER_SPEED, SPEED, GivenCommand
+
+    c = rcfg.get("answer")
+    if c is None or c.get("horizon") is None or not (deploy or c.get("when", "deploy") == "always"):
+        return None
+    envelope = None
+    if rcfg.get("stop_gap") is not None:
+        given = TensorDictModule(GivenCommand(), in_keys=[GAP, SPEED, LEADER_SPEED], out_keys=["action"])
+        envelope = stopping_envelope_policy(given, env, rcfg.stop_gap, gap_margin=rcfg.get("gap_margin", 0.0),
+                                            speed_margin=rcfg.get("speed_margin", 0.0),
+                                            arrive_gain=rcfg.get("arrive_gain"), **_stand_arrival(rcfg)).module
+    idm = c.get("idm")
+    return CommittedAnswer(horizon=c.horizon, horizon_min=c.horizon_min, start=c.start, done=c.done,
+                           gaps=tuple(c.gaps), ks_edge=c.ks_edge, speeds=tuple(c.speeds),
+                           idm=None if idm is None else dict(idm), envelope=envelope, dt=float(env.scenario.dt))
+
+
 def _residual_idm(tcfg, env, *, deploy: bool = False):
     from transforms import ResidualAction
     from transforms.drive_off import ENGAGED
@@ -304,8 +330,10 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
                                   play_release=None if play is None else r.drive_off.get("residual_play_release"),
                                   dt=float(env.scenario.dt))
         join = join_blend(r, env, deploy=deploy)
-        steps = [t for t in (cap, join) if t is not None]
-        return [*steps, residual] if steps else residual  # the action passes the residual, the join, then the cap
+        answer = committed_answer(r, env, deploy=deploy)
+        steps = [t for t in (cap, join, answer) if t is not None]
+        # the action passes the residual, the committed answer, the join, then the cap
+        return [*steps, residual] if steps else residual
     except ValueError as e:
         raise ValueError(f"transforms.residual: {e}") from None
 
