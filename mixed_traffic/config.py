@@ -297,7 +297,8 @@ class AnswerConfig:
     gap floats inside ``gaps`` (``[low, high]`` m; the constant acceleration that matches the leader at the edge
     ahead where that asks for more, ``ks_edge`` (1/s^2) beyond them), bounded by an IDM term (``idm``: ``v0``,
     ``T``, ``a``, ``b``, ``s0``; null: none) and by the base's stopping envelope (``stop_gap`` and its arrival and
-    stand terms; none where the base has no ``stop_gap``). ``when``: ``deploy`` (only where the policy is evaluated
+    stand terms; none where the base has no ``stop_gap``); with ``catch_up`` the base's catch-up lifts it inside that
+    envelope, as it lifts the band law. ``when``: ``deploy`` (only where the policy is evaluated
     or deployed, as ``catch_up.when``) or ``always``. ``horizon`` null (the default): off.
     """
 
@@ -309,6 +310,7 @@ class AnswerConfig:
     ks_edge: float = 0.077  # 1/s^2
     speeds: Any = field(default_factory=lambda: [18.0, 20.0])  # [v_off, v_on] (m/s)
     idm: Any = field(default_factory=lambda: {"v0": 60.0, "T": 0.3, "a": 1.834, "b": 5.0, "s0": 4.571})
+    catch_up: bool = False  # the base's catch-up (transforms.residual.catch_up) lifts the answer inside the envelope
     when: str = "deploy"  # "always" or "deploy"
 
 

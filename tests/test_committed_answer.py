@@ -165,3 +165,16 @@ def test_a_run_saved_before_the_setting_existed_deploys_it_and_a_typo_still_fail
     assert cfg.transforms.residual.answer.horizon == 8.0 and cfg.transforms.residual.answer.horizon_min == 3.0
     with pytest.raises(ConfigError, match=r"transforms\.residual\.answer\.horzon"):
         with_deploy_overrides(old, parse_deploy_overrides(["transforms.residual.answer.horzon=8.0"]))
+
+
+def test_with_catch_up_the_base_catch_up_lifts_the_answer_near_the_band_top_and_nowhere_else():
+    env = make_env("ring", batch_size=1, seed=0)
+    on = ["experiment=ring_lagrangian_ppo_fast_band", "transforms.residual.answer.horizon=6.0"]
+    plain = committed_answer(validate_config(compose(on)).transforms.residual, env)
+    lifted = committed_answer(validate_config(compose([*on, "transforms.residual.answer.catch_up=true"]))
+                              .transforms.residual, env)
+    gap, v, vl = torch.tensor([33.0, 20.0]), torch.tensor([21.0, 21.0]), torch.tensor([22.0, 22.0])
+    zeros, a_l = torch.zeros(2), torch.zeros(2)
+    a_plain, a_lifted = (t.answer(gap, v, vl, zeros, zeros, a_l)[0] for t in (plain, lifted))
+    assert float(a_lifted[0]) > float(a_plain[0]) + 0.3  # a leader pulling away near the top: the catch-up lifts it
+    assert float(a_lifted[1]) == pytest.approx(float(a_plain[1]))  # mid-band: the same answer

@@ -11,7 +11,8 @@ own speed: none of it below ``speeds[0]``, all of it from ``speeds[1]``, linearl
 
 The answer is bounded as the base's band law is: by an IDM term (``idm``, delta 4; the soft law's envelope) and
 by the base's stopping envelope (``envelope``, a :class:`mixed_traffic.controllers.classic.StoppingEnvelope` whose
-law is the answer), so it never leaves the stopping-safe set the base keeps. It stands between the safety layer and
+law is the answer; the builder passes the base's), so with it the answer never leaves the stopping-safe set the base
+keeps. It stands between the safety layer and
 the residual in the chain (``transforms.residual.answer``), so above ``speeds`` it replaces the base plus the
 learned residual (which fades out there in the default experiment), and the safety layer still has the last word.
 Its state (``("answer", "tau")``, ``("answer", "sign")``) travels in the tensordict, so a row reset on its own
@@ -62,8 +63,9 @@ class CommittedAnswer(Transform):
         speeds: ``(v_off, v_on)`` (m/s, ``0 <= v_off < v_on``): the CAV's speeds over which the answer takes over.
         idm: the IDM term's parameters (``v0``, ``T``, ``a``, ``b``, ``s0``; delta 4) that bound the answer, or
             None: no such bound.
-        envelope: a ``StoppingEnvelope`` over a :class:`GivenCommand` (the base's, as
-            :func:`mixed_traffic.training.builders.committed_answer` builds it), or None: no envelope.
+        envelope: a module that bounds the answer, holding one :class:`GivenCommand` as the law it bounds: a
+            ``StoppingEnvelope`` over it (the base's, as :func:`mixed_traffic.training.builders.committed_answer`
+            builds it, with the base's ``CatchUp`` between them when ``catch_up`` is set), or None: no bound.
         dt: the env's step (s, > 0).
         action_key: the executed acceleration (default ``"action"``).
 
@@ -97,8 +99,10 @@ class CommittedAnswer(Transform):
             if not (len(pair) == 2 and 0.0 <= float(pair[0]) < float(pair[1])):
                 raise ValueError(f"CommittedAnswer: {name}={list(pair)!r} is invalid; allowed: [low, high] with "
                                  "0 <= low < high")
-        if envelope is not None and not isinstance(getattr(envelope, "law", None), GivenCommand):
-            raise ValueError("CommittedAnswer: envelope must be a StoppingEnvelope over a GivenCommand")
+        given = [] if envelope is None else [m for m in envelope.modules() if isinstance(m, GivenCommand)]
+        if envelope is not None and len(given) != 1:
+            raise ValueError("CommittedAnswer: envelope must hold exactly one GivenCommand (its law, or the law of a "
+                             "law it wraps, such as a CatchUp)")
         super().__init__(in_keys=[], out_keys=[], in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.horizon, self.horizon_min = float(horizon), float(horizon_min)
         self.start, self.done = float(start), float(done)
@@ -106,6 +110,7 @@ class CommittedAnswer(Transform):
         self.speeds = (float(speeds[0]), float(speeds[1]))
         self.idm = None if idm is None else {k: float(v) for k, v in dict(idm).items()}
         self.envelope, self.dt, self.action_key = envelope, float(dt), action_key
+        self._given = given[0] if given else None
 
     @property
     def reads_leader_accel(self) -> bool:
@@ -120,11 +125,11 @@ class CommittedAnswer(Transform):
         if self.idm is not None:
             a = torch.minimum(a, idm_accel(gap, speed, leader_speed, delta=4.0, **self.idm))
         if self.envelope is not None:
-            self.envelope.law.command = a
+            self._given.command = a
             try:
                 a = self.envelope(gap, speed, leader_speed, *(() if leader_accel is None else (leader_accel,)))
             finally:
-                self.envelope.law.command = None
+                self._given.command = None
         return a, tau, sign
 
     def apply(self, a: torch.Tensor, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,

@@ -282,19 +282,25 @@ def committed_answer(rcfg, env, *, deploy: bool = True):
     """The :class:`transforms.CommittedAnswer` of ``transforms.residual.answer`` (``rcfg``: the ``residual`` node) for
     ``env``, or None when its ``horizon`` is null (off) or it is deploy-only and ``deploy`` is False. It is bounded by
     the base's stopping envelope (``stop_gap`` with the base's arrival and stand terms and measurement margins), none
-    where the base has no ``stop_gap``."""
+    where the base has no ``stop_gap``; with ``answer.catch_up`` the base's catch-up lifts it inside the envelope, as
+    it lifts the base's band law."""
     from tensordict.nn import TensorDictModule
 
-    from mixed_traffic.controllers.classic import stopping_envelope_policy
+    from mixed_traffic.controllers.classic import CatchUp, stopping_envelope_policy
     from transforms import CommittedAnswer
     from transforms.committed_answer import GAP, LEADER_SPEED, SPEED, GivenCommand
 
     c = rcfg.get("answer")
     if c is None or c.get("horizon") is None or not (deploy or c.get("when", "deploy") == "always"):
         return None
-    envelope = None
+    law = GivenCommand()
+    catch = rcfg.get("catch_up")
+    if (c.get("catch_up", False) and catch is not None and catch.get("accel") is not None
+            and (deploy or catch.get("when", "always") == "always")):  # the base's catch-up, as over its band law
+        law = CatchUp(law, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv, horizon=catch.get("horizon", 0.0))
+    envelope = law if isinstance(law, CatchUp) else None
     if rcfg.get("stop_gap") is not None:
-        given = TensorDictModule(GivenCommand(), in_keys=[GAP, SPEED, LEADER_SPEED], out_keys=["action"])
+        given = TensorDictModule(law, in_keys=[GAP, SPEED, LEADER_SPEED], out_keys=["action"])
         envelope = stopping_envelope_policy(given, env, rcfg.stop_gap, gap_margin=rcfg.get("gap_margin", 0.0),
                                             speed_margin=rcfg.get("speed_margin", 0.0),
                                             arrive_gain=rcfg.get("arrive_gain"), **_stand_arrival(rcfg)).module
