@@ -189,12 +189,24 @@ def soft_follower_accel(gap: Tensor, v: Tensor, v_leader: Tensor, *, ks: Num, kv
     if not no_band:
         ceil = match_gap_max if _is(match_h_max, 0.0) else match_gap_max + match_h_max * v  # +-inf (one side off)
         floor = match_gap_min if _is(match_h_min, 0.0) else match_gap_min + match_h_min * v  # stay so
-        room = torch.where(dv > 0, ceil - gap, gap - floor).clamp_min(1.0)  # inf (that side off): no term
-        linear = linear + dv * dv.abs() / (2.0 * room)
+        linear = linear + band_match(gap, dv, floor, ceil)  # an edge at +-inf (that side off): no term
         if not _is(ks_edge, 0.0):
-            beyond = (gap - ceil).clamp_min(0.0) - (floor - gap).clamp_min(0.0)  # 0 inside
-            linear = linear + ks_edge * beyond
+            linear = linear + ks_edge * band_beyond(gap, floor, ceil)
     return torch.minimum(linear, idm_accel(gap, v, v_leader, v0=v0, T=T, a=a, b=b, delta=4.0, s0=s0_idm))
+
+
+def band_match(gap: Tensor, dv: Tensor, floor: Num, ceil: Num) -> Tensor:
+    """``dv |dv| / (2 room)``: the constant acceleration that matches the leader's speed (``dv = v_leader - v``) just
+    as the gap reaches the band's edge ahead, ``ceil`` while the leader is faster (``room = ceil - gap``), ``floor``
+    while it is slower (``room = gap - floor``); room floored at 1 m (m)."""
+    room = torch.where(dv > 0, ceil - gap, gap - floor).clamp_min(1.0)
+    return dv * dv.abs() / (2.0 * room)
+
+
+def band_beyond(gap: Tensor, floor: Num, ceil: Num) -> Tensor:
+    """How far the gap lies beyond the band ``[floor, ceil]`` (m): positive above ``ceil``, negative below ``floor``,
+    0 inside."""
+    return (gap - ceil).clamp_min(0.0) - (floor - gap).clamp_min(0.0)
 
 
 def _is(setting: Num, value: float) -> bool:
@@ -216,7 +228,7 @@ def committed_answer_accel(gap: Tensor, v: Tensor, v_leader: Tensor, tau: Tensor
     ``dv``; behind a leader that keeps changing its speed the gain firms up to ``1 / horizon_min``. The answer ends
     (``sign`` 0, command 0) once ``dv`` has closed to ``done`` or changed sign. Where keeping the gap inside
     ``gaps = (low, high)`` (m) asks for more, the command is the constant acceleration that matches the leader's
-    speed just at the edge ahead, ``dv |dv| / (2 room)`` (room floored at 1 m, :func:`soft_follower_accel`'s band
+    speed just at the edge ahead, ``dv |dv| / (2 room)`` (:func:`band_match`, :func:`soft_follower_accel`'s band
     term), and beyond the edges ``ks_edge`` (1/s^2) pulls the gap back.
 
     The causal least-jerk bound (:func:`mixed_traffic.evaluation.oracle.causal_least_jerk`) drives behind steps of
@@ -232,11 +244,9 @@ def committed_answer_accel(gap: Tensor, v: Tensor, v_leader: Tensor, tau: Tensor
     a = torch.where(running, dv / tau.clamp_min(horizon_min), torch.zeros_like(dv))
     tau = torch.where(running, tau - dt, tau)
     low, high = gaps
-    room = torch.where(dv > 0, high - gap, gap - low).clamp_min(1.0)
-    match = dv * dv.abs() / (2.0 * room)
+    match = band_match(gap, dv, low, high)
     a = torch.where(match.abs() > a.abs(), match, a)
-    a = a + ks_edge * ((gap - high).clamp_min(0.0) - (low - gap).clamp_min(0.0))
-    return a, tau, sign
+    return a + ks_edge * band_beyond(gap, low, high), tau, sign
 
 
 def stop_arrival_accel(gap: Tensor, v: Tensor, v_leader: Tensor, a_leader: Tensor, *, stand_gap: Num,

@@ -342,24 +342,19 @@ def with_deploy_overrides(run_cfg: DictConfig, pairs) -> DictConfig:
     (:func:`validate_config`); ``ConfigError`` naming a key the run's config does not have (a typo fails before
     anything runs) or a value out of range."""
     cfg = OmegaConf.create(OmegaConf.to_container(run_cfg, resolve=False))
-    # a transform added since the run was trained, set or put in the chain here: its node with the schema's defaults
-    nodes = [key.split(".")[1] for key, _ in pairs if key.count(".") >= 2]
-    nodes += [n for key, value in pairs if key == "transforms.chain" and isinstance(value, list) for n in value]
-    missing = [n for n in nodes if isinstance(n, str) and n not in (cfg.get("transforms") or {})]
-    schema = OmegaConf.structured(TransformsConfig) if cfg.get("transforms") is not None else None
-    if missing and schema is not None:
-        for node in (n for n in missing if n in schema):
-            cfg.transforms[node] = OmegaConf.to_container(schema[node])
-    if schema is not None:  # a node added inside a transform's settings since the run was trained (e.g.
-        for key, _ in pairs:  # transforms.residual.answer): the schema's node, with its defaults
-            parts = key.split(".")[1:-1]
-            for depth in range(2, len(parts) + 1):
-                path = ".".join(parts[:depth])
-                node = OmegaConf.select(schema, path, default=None)
-                if (OmegaConf.select(cfg.transforms, ".".join(parts[:depth - 1]), default=None) is not None
-                        and OmegaConf.select(cfg.transforms, path, default="<missing>") == "<missing>"
-                        and OmegaConf.is_dict(node)):
-                    OmegaConf.update(cfg.transforms, path, OmegaConf.to_container(node), merge=False)
+    if cfg.get("transforms") is not None:
+        # a transform, or a node of a transform's settings (e.g. transforms.residual.answer), added since the run was
+        # trained and set or put in the chain here: the schema's node with its defaults, parents before children
+        schema = OmegaConf.structured(TransformsConfig)
+        paths = [".".join(key.split(".")[1:depth]) for key, _ in pairs for depth in range(2, key.count(".") + 1)]
+        paths += [n for key, value in pairs if key == "transforms.chain" and isinstance(value, list)
+                  for n in value if isinstance(n, str)]
+        for path in paths:
+            parent = path.rpartition(".")[0]
+            node = OmegaConf.select(schema, path, default=None)
+            if (OmegaConf.is_dict(node) and OmegaConf.select(cfg.transforms, path, default="<missing>") == "<missing>"
+                    and (not parent or OmegaConf.select(cfg.transforms, parent, default=None) is not None)):
+                OmegaConf.update(cfg.transforms, path, OmegaConf.to_container(node), merge=False)
     for key, value in pairs:
         parent = key.rpartition(".")[0]
         is_param = _names_a_law_parameter(key) and OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None))

@@ -294,16 +294,13 @@ def committed_answer(rcfg, env, *, deploy: bool = True):
     if c is None or c.get("horizon") is None or not (deploy or c.get("when", "deploy") == "always"):
         return None
     law = GivenCommand()
-    catch = rcfg.get("catch_up")
-    if (c.get("catch_up", False) and catch is not None and catch.get("accel") is not None
-            and (deploy or catch.get("when", "always") == "always")):  # the base's catch-up, as over its band law
-        law = CatchUp(law, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv, horizon=catch.get("horizon", 0.0))
+    catch = _catch_up(rcfg, deploy=deploy) if c.get("catch_up", False) else None
+    if catch is not None:  # the base's catch-up, as over its band law
+        law = CatchUp(law, **catch)
     envelope = law if isinstance(law, CatchUp) else None
     if rcfg.get("stop_gap") is not None:
         given = TensorDictModule(law, in_keys=[GAP, SPEED, LEADER_SPEED], out_keys=["action"])
-        envelope = stopping_envelope_policy(given, env, rcfg.stop_gap, gap_margin=rcfg.get("gap_margin", 0.0),
-                                            speed_margin=rcfg.get("speed_margin", 0.0),
-                                            arrive_gain=rcfg.get("arrive_gain"), **_stand_arrival(rcfg)).module
+        envelope = stopping_envelope_policy(given, env, rcfg.stop_gap, **_envelope_settings(rcfg)).module
     idm = c.get("idm")
     return CommittedAnswer(horizon=c.horizon, horizon_min=c.horizon_min, start=c.start, done=c.done,
                            gaps=tuple(c.gaps), ks_edge=c.ks_edge, speeds=tuple(c.speeds),
@@ -355,6 +352,22 @@ def _stand_arrival(rcfg) -> dict:
             "stand_leader_brake": math.inf if brake is None else brake}
 
 
+def _catch_up(rcfg, *, deploy: bool) -> dict | None:
+    """``CatchUp``'s arguments from ``transforms.residual.catch_up`` (``rcfg``: the ``residual`` node), or None when
+    it is off (``accel`` null) or deploy-only and ``deploy`` is False."""
+    catch = rcfg.get("catch_up")
+    if catch is None or catch.get("accel") is None or not (deploy or catch.get("when", "always") == "always"):
+        return None
+    return {"accel": catch.accel, "gaps": tuple(catch.gaps), "dv": catch.dv, "horizon": catch.get("horizon", 0.0)}
+
+
+def _envelope_settings(rcfg) -> dict:
+    """``stopping_envelope_policy``'s settings of the base's envelope beside its ``stop_gap``: the measurement margins,
+    the arrival term and the stand arrival."""
+    return {"gap_margin": rcfg.get("gap_margin", 0.0), "speed_margin": rcfg.get("speed_margin", 0.0),
+            "arrive_gain": rcfg.get("arrive_gain"), **_stand_arrival(rcfg)}
+
+
 ENVELOPE_ROOM_KEY = ("residual", "envelope_room")  # where the base writes its room below the envelope (m/s^2)
 ENVELOPE_SLACK_KEY = ("residual", "envelope_slack")  # ... and the envelope's margin (m)
 
@@ -387,14 +400,12 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
             if node.get("brake_floor") is not None:
                 high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.brake_margin)
             base = speed_scheduled_policy(base, high, node.v_low, node.v_high)
-    catch = rcfg.get("catch_up")
-    if catch is not None and catch.get("accel") is not None and (deploy or catch.get("when", "always") == "always"):
-        base = catch_up_policy(base, accel=catch.accel, gaps=tuple(catch.gaps), dv=catch.dv,
-                               horizon=catch.get("horizon", 0.0))
+    catch = _catch_up(rcfg, deploy=deploy)
+    if catch is not None:
+        base = catch_up_policy(base, **catch)
     if rcfg.get("stop_gap") is not None:
         base = stopping_envelope_policy(base, env, rcfg.stop_gap, room_key=room_key, slack_key=slack_key,
-                                        gap_margin=rcfg.get("gap_margin", 0.0), speed_margin=rcfg.get("speed_margin", 0.0),
-                                        arrive_gain=rcfg.get("arrive_gain"), **_stand_arrival(rcfg))
+                                        **_envelope_settings(rcfg))
     return base
 
 
