@@ -372,6 +372,28 @@ and across the speeds where the residual fades out (18-20 m/s):
 - ``perturbation_22_p8_humans_15pct``: ``random_perturbation`` around 22 m/s, +-2 m/s knots every 8 s, with the
   humans' parameters spread +-15 %.
 
+Nine more (``--cases fresh_22``), fixed after fresh_21 and fresh_21_fast were scored and before anything ran on
+them: a fifteenth out-of-sample set, the test of any change made after fresh_21; the same mix:
+
+- ``sine_13_p55_ring_260``: ``sine`` at 13 +- 2 m/s, period 55 s, on a 260 m ring;
+- ``sine_10_p40_humans_20pct``: ``sine`` at 10 +- 2.5 m/s, period 40 s, with the humans' parameters spread +-20 %;
+- ``ramps_5_14_ring_310``: ``random_ramps`` at 5-14 m/s on a 310 m ring;
+- ``ramps_11_18_humans_15pct``: ``random_ramps`` at 11-18 m/s with the humans' parameters spread +-15 %;
+- ``perturbation_14_p9_ring_270``: ``random_perturbation`` around 14 m/s, +-2 m/s knots every 9 s, on a 270 m ring;
+- ``steps_6_17_ring_290``: ``random_steps`` at 6-17 m/s, period 21 s, on a 290 m ring;
+- ``random_stops_mid_short_stands``: ``random_stop_and_go`` with holds of 6-12 s at 7-13 m/s, stands of 2-6 s,
+  braking and driving off at 1.2-2.2 m/s^2;
+- ``brake_from_17_ring_270``: ``emergency_brake`` from 17 m/s down to 0 m/s at 70 s, on a 270 m ring;
+- ``sine_22_p45_ring_280``: ``sine`` at 22 +- 2 m/s, period 45 s, on a 280 m ring, above the training range.
+
+Four more (``--cases fresh_22_fast``), fixed with fresh_22 and before anything ran on them, above the training range
+and across the speeds where the residual fades out (18-20 m/s):
+
+- ``sine_20_p55_humans_15pct``: ``sine`` at 20.5 +- 2 m/s, period 55 s, with the humans' parameters spread +-15 %;
+- ``steps_19_24_ring_270``: ``random_steps`` at 19-24 m/s, period 23 s, on a 270 m ring;
+- ``ramps_18_25``: ``random_ramps`` at 18-25 m/s;
+- ``perturbation_21_p10_ring_300``: ``random_perturbation`` around 21 m/s, +-2 m/s knots every 10 s, on a 300 m ring.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -873,6 +895,40 @@ def cases(seconds: float) -> dict[str, dict]:
         "perturbation_22_p8_humans_15pct": {"profile": "random_perturbation", "kwargs": {"v_star": 22.0,
                                                                                          "amplitude": 2.0, "period": 8.0},
                                             "eval": {"hdv_param_noise": 0.15}},
+        # fresh_22 and fresh_22_fast: fixed on 2026-12-01 after fresh_21 / fresh_21_fast were scored, before anything
+        # ran on them: a fifteenth out-of-sample set and a sixth set above the training range, the test of any change
+        # made after fresh_21
+        "sine_13_p55_ring_260": {"profile": "sine", "kwargs": {"v_star": 13.0, "amplitude": 2.0, "period": 55.0},
+                                 "env": {"ring_length": 260.0}},
+        "sine_10_p40_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 10.0, "amplitude": 2.5, "period": 40.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
+        "ramps_5_14_ring_310": {"profile": "random_ramps", "kwargs": {"v_low": 5.0, "v_high": 14.0},
+                                "env": {"ring_length": 310.0}},
+        "ramps_11_18_humans_15pct": {"profile": "random_ramps", "kwargs": {"v_low": 11.0, "v_high": 18.0},
+                                     "eval": {"hdv_param_noise": 0.15}},
+        "perturbation_14_p9_ring_270": {"profile": "random_perturbation", "kwargs": {"v_star": 14.0, "amplitude": 2.0,
+                                                                                     "period": 9.0},
+                                        "env": {"ring_length": 270.0}},
+        "steps_6_17_ring_290": {"profile": "random_steps", "kwargs": {"v_low": 6.0, "v_high": 17.0, "period": 21.0,
+                                                                     "v_init": 11.0},
+                                "env": {"ring_length": 290.0}},
+        "random_stops_mid_short_stands": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 7.0, "v_high": 13.0, "hold_min": 6.0, "hold_max": 12.0, "stop_min": 2.0, "stop_max": 6.0,
+            "rate_min": 1.2, "rate_max": 2.2}},
+        "brake_from_17_ring_270": {"profile": "emergency_brake", "kwargs": {"start": 70.0, "v_cruise": 17.0,
+                                                                            "v_low": 0.0},
+                                   "env": {"ring_length": 270.0}},
+        "sine_22_p45_ring_280": {"profile": "sine", "kwargs": {"v_star": 22.0, "amplitude": 2.0, "period": 45.0},
+                                 "env": {"ring_length": 280.0}},
+        "sine_20_p55_humans_15pct": {"profile": "sine", "kwargs": {"v_star": 20.5, "amplitude": 2.0, "period": 55.0},
+                                     "eval": {"hdv_param_noise": 0.15}},
+        "steps_19_24_ring_270": {"profile": "random_steps", "kwargs": {"v_low": 19.0, "v_high": 24.0, "period": 23.0,
+                                                                       "v_init": 21.0},
+                                 "env": {"ring_length": 270.0}},
+        "ramps_18_25": {"profile": "random_ramps", "kwargs": {"v_low": 18.0, "v_high": 25.0}},
+        "perturbation_21_p10_ring_300": {"profile": "random_perturbation", "kwargs": {"v_star": 21.0, "amplitude": 2.0,
+                                                                                      "period": 10.0},
+                                         "env": {"ring_length": 300.0}},
     }
 
 
@@ -927,6 +983,10 @@ FRESH_21 = ("sine_12_p50_ring_300", "sine_16_p40_humans_20pct", "ramps_4_12_ring
             "perturbation_11_p10_ring_290", "steps_8_18_ring_260", "random_stops_slow_short_holds",
             "brake_from_18_ring_300", "steps_20_24_ring_300")
 FRESH_21_FAST = ("sine_21_p60", "steps_18_26_ring_290", "ramps_19_25_ring_260", "perturbation_22_p8_humans_15pct")
+FRESH_22 = ("sine_13_p55_ring_260", "sine_10_p40_humans_20pct", "ramps_5_14_ring_310", "ramps_11_18_humans_15pct",
+            "perturbation_14_p9_ring_270", "steps_6_17_ring_290", "random_stops_mid_short_stands",
+            "brake_from_17_ring_270", "sine_22_p45_ring_280")
+FRESH_22_FAST = ("sine_20_p55_humans_15pct", "steps_19_24_ring_270", "ramps_18_25", "perturbation_21_p10_ring_300")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
@@ -936,7 +996,7 @@ _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH
           "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST,
           "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "fresh_20": FRESH_20,
           "fresh_20_fast": FRESH_20_FAST, "fresh_21": FRESH_21, "fresh_21_fast": FRESH_21_FAST,
-          "training": TRAINING}
+          "fresh_22": FRESH_22, "fresh_22_fast": FRESH_22_FAST, "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 

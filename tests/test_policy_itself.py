@@ -927,7 +927,7 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
                                          r"'fresh_8', 'fresh_9', 'fresh_10', 'fresh_11', 'fresh_12', 'fresh_13', 'fresh_14', "
                                          r"'fresh_15', 'fresh_16', 'fresh_17', 'fresh_17_fast', 'fresh_18', 'fresh_18_fast', "
                                          r"'fresh_19', 'fresh_19_fast', 'fresh_20', 'fresh_20_fast', 'fresh_21', "
-                                         r"'fresh_21_fast', 'training'\]"):
+                                         r"'fresh_21_fast', 'fresh_22', 'fresh_22_fast', 'training'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
@@ -939,7 +939,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert len(mod.GROUPS["fresh_16"]) == len(mod.GROUPS["fresh_17"]) == len(mod.GROUPS["fresh_18"]) == 9
     assert len(mod.GROUPS["fresh_19"]) == len(mod.GROUPS["fresh_20"]) == len(mod.GROUPS["fresh_21"]) == 9
     assert len(mod.GROUPS["fresh_17_fast"]) == len(mod.GROUPS["fresh_18_fast"]) == len(mod.GROUPS["fresh_19_fast"]) == 4
-    assert len(mod.GROUPS["fresh_20_fast"]) == len(mod.GROUPS["fresh_21_fast"]) == 4
+    assert len(mod.GROUPS["fresh_20_fast"]) == len(mod.GROUPS["fresh_21_fast"]) == len(mod.GROUPS["fresh_22_fast"]) == 4
+    assert len(mod.GROUPS["fresh_22"]) == 9
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
@@ -977,7 +978,7 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert (float(v.max()) > 20.5) == (name in above), name
     assert float(head_speeds("random_stops_slow_long", 12000).min()) == 0.0
-    # fresh_6 to fresh_21: each within the CAV's reach, one case above the training speeds, two that stand still
+    # fresh_6 to fresh_22: each within the CAV's reach, one case above the training speeds, two that stand still
     for group, seed, above, stand in (("fresh_6", 13000, "sine_22_p35", ("random_stops_mid", "brake_from_15_late")),
                                       ("fresh_7", 14000, "steps_20_26", ("random_stops_short", "brake_from_11")),
                                       ("fresh_8", 15000, "sine_21_p40", ("random_stops_long", "brake_from_14")),
@@ -1002,7 +1003,9 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
                                       ("fresh_20", 30000, "ramps_20_24_ring_280",
                                        ("random_stops_long_stands", "brake_from_16_ring_320")),
                                       ("fresh_21", 32000, "steps_20_24_ring_300",
-                                       ("random_stops_slow_short_holds", "brake_from_18_ring_300"))):
+                                       ("random_stops_slow_short_holds", "brake_from_18_ring_300")),
+                                      ("fresh_22", 34000, "sine_22_p45_ring_280",
+                                       ("random_stops_mid_short_stands", "brake_from_17_ring_270"))):
         for name in mod.GROUPS[group]:
             v = head_speeds(name, seed)
             assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
@@ -1010,7 +1013,7 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
             assert (float(v.min()) == 0.0) == (name in stand), name
     # the fast groups: every case above the training speeds, none standing still
     for group, seed in (("fresh_17_fast", 25000), ("fresh_18_fast", 27000), ("fresh_19_fast", 29000),
-                        ("fresh_20_fast", 31000), ("fresh_21_fast", 33000)):
+                        ("fresh_20_fast", 31000), ("fresh_21_fast", 33000), ("fresh_22_fast", 35000)):
         for name in mod.GROUPS[group]:
             v = head_speeds(name, seed)
             assert float(v.min()) > 0.0 and float(v.max()) > 20.5 and float(v.max()) <= 28.0 + 1e-4, name
