@@ -231,6 +231,23 @@ class CatchUpConfig:
 
 
 @dataclass
+class FeedForwardConfig:
+    """``transforms.residual.feed_forward``: the leader's acceleration, received over V2V and clipped to
+    ``accel_max`` (m/s^2), times ``gain`` added to the base above ``speeds`` (``[v_off, v_on]`` m/s, by the CAV's
+    own speed, linearly between), inside the base's catch-up and stopping envelope
+    (``mixed_traffic.controllers.classic.LeaderAccelFeed``). A smooth head's speed swings (a sine's acceleration
+    stays within a few tenths of m/s^2) then reach the CAV in phase, so the gap stays put, while the head's
+    harder ramps and steps pass only up to ``accel_max``. ``when``: ``deploy`` (only where the policy is evaluated
+    or deployed, as ``catch_up.when``) or ``always``. ``gain`` null (the default): off.
+    """
+
+    gain: float | None = None  # in (0, 1]; null: off
+    accel_max: float = 0.25  # m/s^2
+    speeds: Any = field(default_factory=lambda: [18.0, 20.0])  # [v_off, v_on] (m/s)
+    when: str = "deploy"  # "always" or "deploy"
+
+
+@dataclass
 class StandArrivalConfig:
     """``transforms.residual.stand_arrival`` (needs ``stop_gap``): near the stopping envelope's edge behind a
     braking leader, the base is held at or below the constant deceleration that brings the car to rest
@@ -368,6 +385,8 @@ class ResidualConfig:
     null: off.
     ``catch_up`` (:class:`CatchUpConfig`): the base (inside the envelope) lifted toward an acceleration while
     its leader pulls away from a large gap; off by default.
+    ``feed_forward`` (:class:`FeedForwardConfig`): above a speed, the leader's acceleration (clipped) fed forward
+    into the base (inside the envelope, under the catch-up); off by default.
     ``stand_arrival`` (:class:`StandArrivalConfig`; needs ``stop_gap``): near the envelope's edge the base is
     held at or below a constant deceleration to rest behind where a braking leader will stand; off by default.
     ``drive_off`` (:class:`DriveOffConfig`): after a standstill, the command capped so that the CAV eases onto
@@ -400,6 +419,7 @@ class ResidualConfig:
     beyond_speed: SpeedLawConfig = field(default_factory=SpeedLawConfig)
     fade_speeds: Any = None  # [v_full, v_zero] (m/s) or null
     catch_up: CatchUpConfig = field(default_factory=CatchUpConfig)
+    feed_forward: FeedForwardConfig = field(default_factory=FeedForwardConfig)
     stand_arrival: StandArrivalConfig = field(default_factory=StandArrivalConfig)
     drive_off: DriveOffConfig = field(default_factory=DriveOffConfig)
     join: JoinConfig = field(default_factory=JoinConfig)

@@ -145,6 +145,9 @@ CONFIG_RULES: dict[str, Callable] = {
     "transforms.residual.catch_up.dv": Real(0, lo_open=True),
     "transforms.residual.catch_up.horizon": Real(0),
     "transforms.residual.catch_up.when": OneOf(("always", "deploy")),
+    "transforms.residual.feed_forward.gain": Real(0, 1, lo_open=True, optional=True),
+    "transforms.residual.feed_forward.accel_max": Real(0, 10, lo_open=True),
+    "transforms.residual.feed_forward.when": OneOf(("always", "deploy")),
     "transforms.residual.stand_arrival.stand_gap": Real(0, lo_open=True, optional=True),
     "transforms.residual.stand_arrival.slack": Real(0, lo_open=True),
     "transforms.residual.stand_arrival.leader_brake": Real(0, lo_open=True, optional=True),
@@ -430,6 +433,7 @@ def validate_config(cfg: DictConfig) -> DictConfig:
     for name in ("transforms.residual.catch_up.gaps", "transforms.residual.drive_off.gaps"):
         _check_ordered_pair(cfg, name, "[from, full] with 0 <= from < full (m)")
     _check_ordered_pair(cfg, "transforms.residual.stand_arrival.speeds", "[full, none] with 0 <= full < none (m/s)")
+    _check_ordered_pair(cfg, "transforms.residual.feed_forward.speeds", "[v_off, v_on] with 0 <= v_off < v_on (m/s)")
     if OmegaConf.select(cfg, "transforms.residual.answer.horizon", default=None) is not None:
         ans = OmegaConf.select(cfg, "transforms.residual.answer")
         _check_ordered_pair(cfg, "transforms.residual.answer.gaps", "[low, high] with 0 <= low < high (m)")

@@ -278,6 +278,64 @@ def catch_up_policy(policy: TensorDictModule, *, accel: float, gaps, dv: float, 
                             in_keys=list(policy.in_keys), out_keys=list(policy.out_keys))
 
 
+class LeaderAccelFeed(nn.Module):
+    """``law + w(v) gain clip(a_leader, -accel_max, accel_max)``: the leader's acceleration fed forward above a speed.
+
+    ``w(v)`` rises linearly from 0 at ``speeds[0]`` to 1 at ``speeds[1]`` (m/s, the car's own speed). A law that
+    answers only the speed difference lags a head whose speed swings smoothly, and the gap swings with it; with
+    the leader's acceleration (``("cav", "leader_accel")``, over V2V, as CACC reads it) in the command the car
+    swings in phase and the gap stays put. Clipped at ``accel_max``, a head's hard ramps and steps (1-2 m/s^2)
+    pass only that much, so their jumps in acceleration are not copied whole. It is a term of the base: the
+    catch-up and the stopping envelope applied to the whole base afterwards still act on it, so the base stays
+    collision-free. TorchRL has no car-following law.
+
+    >>> import torch
+    >>> law = LeaderAccelFeed(lambda gap, v, vl: torch.zeros_like(v), gain=0.8, accel_max=0.25, speeds=(18.0, 20.0))
+    >>> law(torch.tensor([25.0] * 3), torch.tensor([17.0, 19.0, 22.0]), torch.tensor([22.0] * 3), torch.tensor([0.2, 0.2, 1.0]))
+    tensor([0.0000, 0.0800, 0.2000])
+    """
+
+    reads_leader_accel = True
+
+    def __init__(self, law, *, gain: float, accel_max: float, speeds: tuple[float, float]):
+        super().__init__()
+        v0, v1 = (float(v) for v in speeds)
+        if not 0.0 < gain <= 1.0:
+            raise ValueError(f"feed_forward.gain = {gain} is invalid; allowed: 0 < gain <= 1")
+        if not accel_max > 0.0:
+            raise ValueError(f"feed_forward.accel_max = {accel_max} is invalid; allowed: > 0 (m/s^2)")
+        if not 0.0 <= v0 < v1:
+            raise ValueError(f"feed_forward.speeds = {list(speeds)} is invalid; allowed: [v_off, v_on] with "
+                             "0 <= v_off < v_on (m/s)")
+        self.law, self.gain, self.accel_max, self.speeds = law, float(gain), float(accel_max), (v0, v1)
+
+    def forward(self, gap: torch.Tensor, speed: torch.Tensor, leader_speed: torch.Tensor,
+                leader_accel: torch.Tensor | None = None) -> torch.Tensor:
+        if leader_accel is None:
+            raise ValueError("a feed-forward reads the leader's acceleration: pass leader_accel")
+        a = self.law(gap, speed, leader_speed, *((leader_accel,) if reads_leader_accel(self.law) else ()))
+        v0, v1 = self.speeds
+        w = ((speed - v0) / (v1 - v0)).clamp(0.0, 1.0)
+        return a + w * self.gain * leader_accel.clamp(-self.accel_max, self.accel_max)
+
+
+def leader_accel_feed_policy(policy: TensorDictModule, env, *, gain: float, accel_max: float,
+                             speeds=(18.0, 20.0)) -> TensorDictModule:
+    """``policy`` (of :func:`make_classic_policy` or :func:`speed_scheduled_policy`) with :class:`LeaderAccelFeed`,
+    reading the leader's acceleration as well.
+
+    >>> from mixed_traffic import make_env
+    >>> env = make_env("ring", batch_size=2, seed=0)
+    >>> pol = leader_accel_feed_policy(make_classic_policy("idm", env), env, gain=0.8, accel_max=0.25)
+    >>> bool(env.rollout(50, pol)["next", "collision"].any())
+    False
+    """
+    require_leader_accel(env, "a feed-forward")
+    keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
+    return TensorDictModule(LeaderAccelFeed(policy.module, gain=gain, accel_max=accel_max, speeds=tuple(speeds)),
+                            in_keys=keys, out_keys=list(policy.out_keys))
+
+
 class StoppingEnvelope(nn.Module):
     """``min(law(gap, v, v_lead), a_stop)``: a law that never leaves the stopping-safe set.
 
@@ -563,4 +621,4 @@ def make_classic_policy(model: str, env=None, *, low: float | None = None, high:
 
 __all__ = ["make_classic_policy", "classic_parameters", "action_bounds", "speed_scheduled_policy", "CarFollowingCAV",
            "SpeedScheduledCAV", "StoppingEnvelope", "stopping_envelope_policy", "CLASSIC", "LEADER_ACCEL_KEY",
-           "LeaderBrakeFloor", "leader_brake_floor_policy", "reads_leader_accel", "require_leader_accel"]
+           "LeaderBrakeFloor", "leader_brake_floor_policy", "LeaderAccelFeed", "leader_accel_feed_policy", "reads_leader_accel", "require_leader_accel"]

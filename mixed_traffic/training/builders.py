@@ -376,12 +376,14 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
     """The classical base of ``transforms.residual`` (``rcfg``) for ``env``: ``base`` with ``params`` (a null
     parameter: the model's own), joined by speed to ``high_speed``, ``top_speed`` and then ``beyond_speed`` when they are set
     (each with its ``brake_floor`` when set),
-    lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (with its ``stand_arrival`` when that is set; writing its room below it to ``room_key``
+    with the leader's acceleration fed forward by ``feed_forward`` when its ``gain`` is set (deploy-only unless its
+    ``when`` is ``always``), lifted by ``catch_up`` when its ``accel`` is set, inside the stopping envelope of ``stop_gap`` when it is set (with its ``stand_arrival`` when that is set; writing its room below it to ``room_key``
     and its margin to ``slack_key`` when given). ``saturate=False``: its command is not clipped to the env's action bounds
     (``ResidualAction`` clips the sum). ``deploy``: the base as evaluated or deployed; False, as it trains
-    (without a ``catch_up`` whose ``when`` is ``deploy``)."""
+    (without a ``catch_up`` or ``feed_forward`` whose ``when`` is ``deploy``)."""
     from mixed_traffic.controllers.classic import (
         catch_up_policy,
+        leader_accel_feed_policy,
         leader_brake_floor_policy,
         speed_scheduled_policy,
         stopping_envelope_policy,
@@ -400,6 +402,9 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
             if node.get("brake_floor") is not None:
                 high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.brake_margin)
             base = speed_scheduled_policy(base, high, node.v_low, node.v_high)
+    feed = rcfg.get("feed_forward")
+    if feed is not None and feed.get("gain") is not None and (deploy or feed.get("when", "deploy") == "always"):
+        base = leader_accel_feed_policy(base, env, gain=feed.gain, accel_max=feed.accel_max, speeds=tuple(feed.speeds))
     catch = _catch_up(rcfg, deploy=deploy)
     if catch is not None:
         base = catch_up_policy(base, **catch)
