@@ -53,6 +53,14 @@ def require_leader_accel(env, who: str) -> None:
                          "observe; allowed: the car-following envs (scenarios ring, ring_wave, deeplcc)")
 
 
+def _reading_leader_accel(policy: TensorDictModule, env, module: nn.Module, who: str) -> TensorDictModule:
+    """``module`` (a wrapper of ``policy``'s law that reads the leader's acceleration) as a policy with ``policy``'s
+    keys and :data:`LEADER_ACCEL_KEY`; raises, naming ``who``, where ``env`` does not observe that key."""
+    require_leader_accel(env, who)
+    keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
+    return TensorDictModule(module, in_keys=keys, out_keys=list(policy.out_keys))
+
+
 def _param_checks(model: str, p: dict) -> tuple:
     """``(name, ok, allowed)`` for each range a model's parameters must keep (none for IDM and OVM)."""
     if model == "soft":
@@ -220,10 +228,8 @@ def leader_brake_floor_policy(policy: TensorDictModule, env, *, floor: float, ma
     >>> bool(env.rollout(50, pol)["next", "collision"].any())
     False
     """
-    require_leader_accel(env, "a brake floor")
-    keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
-    return TensorDictModule(LeaderBrakeFloor(policy.module, floor=floor, margin=margin), in_keys=keys,
-                            out_keys=list(policy.out_keys))
+    return _reading_leader_accel(policy, env, LeaderBrakeFloor(policy.module, floor=floor, margin=margin),
+                                 "a brake floor")
 
 
 class CatchUp(nn.Module):
@@ -330,10 +336,9 @@ def leader_accel_feed_policy(policy: TensorDictModule, env, *, gain: float, acce
     >>> bool(env.rollout(50, pol)["next", "collision"].any())
     False
     """
-    require_leader_accel(env, "a feed-forward")
-    keys = list(policy.in_keys) + ([] if LEADER_ACCEL_KEY in policy.in_keys else [LEADER_ACCEL_KEY])
-    return TensorDictModule(LeaderAccelFeed(policy.module, gain=gain, accel_max=accel_max, speeds=tuple(speeds)),
-                            in_keys=keys, out_keys=list(policy.out_keys))
+    return _reading_leader_accel(
+        policy, env, LeaderAccelFeed(policy.module, gain=gain, accel_max=accel_max, speeds=tuple(speeds)),
+        "a feed-forward")
 
 
 class StoppingEnvelope(nn.Module):
