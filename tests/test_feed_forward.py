@@ -9,7 +9,7 @@ import torch
 
 from mixed_traffic import make_env
 from mixed_traffic.config import compose
-from mixed_traffic.controllers.classic import LeaderAccelFeed, StoppingEnvelope, make_classic_policy
+from mixed_traffic.controllers.classic import CatchUp, LeaderAccelFeed, StoppingEnvelope, make_classic_policy
 from mixed_traffic.training.builders import residual_base
 from mixed_traffic.validation import ConfigError, validate_config
 
@@ -92,6 +92,9 @@ def test_deploy_only_by_default_off_in_the_default_and_bad_settings_name_the_fie
     assert not fed(default, True)
     on = validate_config(compose([FAST_BAND, "transforms.residual.feed_forward.gain=0.6"]))
     assert fed(on, True) and not fed(on, False)
+    deployed = residual_base(on.transforms.residual, env, deploy=True).module  # inside the envelope and the catch-up
+    assert isinstance(deployed, StoppingEnvelope) and isinstance(deployed.law, CatchUp)
+    assert isinstance(deployed.law.law, LeaderAccelFeed)
     always = validate_config(compose([FAST_BAND, "transforms.residual.feed_forward.gain=0.6",
                                       "transforms.residual.feed_forward.when=always"]))
     assert fed(always, False)
