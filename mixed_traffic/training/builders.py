@@ -225,6 +225,16 @@ def envelope_stop_gap(rcfg) -> float:
     return 5.0 if stop_gap is None else float(stop_gap)
 
 
+def _switched_on(rcfg, name: str, switch: str, *, deploy: bool, when: str = "deploy"):
+    """The node ``name`` of ``transforms.residual`` (``rcfg``) when its ``switch`` is set and it acts in the env being
+    built: always, or, with its ``when`` at ``deploy`` (``when``: the node's default), only where the policy is
+    evaluated or deployed (``deploy``); None otherwise."""
+    node = rcfg.get(name)
+    if node is None or node.get(switch) is None or not (deploy or node.get("when", when) == "always"):
+        return None
+    return node
+
+
 def drive_off_cap(rcfg, env):
     """The :class:`transforms.DriveOffCap` of ``transforms.residual.drive_off`` (``rcfg``: the ``residual`` node) for
     ``env``'s step, or None when its ``gain`` is null (off). Where it acts (deploy or always) is the caller's."""
@@ -261,8 +271,8 @@ def join_blend(rcfg, env, *, deploy: bool = True):
     from mixed_traffic.controllers.classic import speed_scheduled_policy, stopping_envelope_policy
     from transforms import JoinBlend
 
-    j = rcfg.get("join")
-    if j is None or j.get("base") is None or not (deploy or j.get("when", "deploy") == "always"):
+    j = _switched_on(rcfg, "join", "base", deploy=deploy)
+    if j is None:
         return None
     params = dict(j.get("params") or {})
     law = classic_law(j.base, params, env)
@@ -290,8 +300,8 @@ def committed_answer(rcfg, env, *, deploy: bool = True):
     from transforms import CommittedAnswer
     from transforms.committed_answer import GAP, LEADER_SPEED, SPEED, GivenCommand
 
-    c = rcfg.get("answer")
-    if c is None or c.get("horizon") is None or not (deploy or c.get("when", "deploy") == "always"):
+    c = _switched_on(rcfg, "answer", "horizon", deploy=deploy)
+    if c is None:
         return None
     law = GivenCommand()
     catch = _catch_up(rcfg, deploy=deploy) if c.get("catch_up", False) else None
@@ -323,7 +333,7 @@ def _residual_idm(tcfg, env, *, deploy: bool = False):
                              deploy=deploy)
         fade = r.get("fade_speeds")
         cap = drive_off_cap(r, env)
-        if cap is not None and not (deploy or r.drive_off.get("when", "deploy") == "always"):
+        if cap is not None and _switched_on(r, "drive_off", "gain", deploy=deploy) is None:
             cap = None  # a deploy-only cap while training
         play = None if cap is None else r.drive_off.get("residual_play")
         residual = ResidualAction(base, weight=r.weight, engage_seconds=r.get("engage_seconds", 0.0),
@@ -355,8 +365,8 @@ def _stand_arrival(rcfg) -> dict:
 def _catch_up(rcfg, *, deploy: bool) -> dict | None:
     """``CatchUp``'s arguments from ``transforms.residual.catch_up`` (``rcfg``: the ``residual`` node), or None when
     it is off (``accel`` null) or deploy-only and ``deploy`` is False."""
-    catch = rcfg.get("catch_up")
-    if catch is None or catch.get("accel") is None or not (deploy or catch.get("when", "always") == "always"):
+    catch = _switched_on(rcfg, "catch_up", "accel", deploy=deploy, when="always")
+    if catch is None:
         return None
     return {"accel": catch.accel, "gaps": tuple(catch.gaps), "dv": catch.dv, "horizon": catch.get("horizon", 0.0)}
 
@@ -402,8 +412,8 @@ def residual_base(rcfg, env, *, saturate: bool = True, room_key=None, slack_key=
             if node.get("brake_floor") is not None:
                 high = leader_brake_floor_policy(high, env, floor=node.brake_floor, margin=node.brake_margin)
             base = speed_scheduled_policy(base, high, node.v_low, node.v_high)
-    feed = rcfg.get("feed_forward")
-    if feed is not None and feed.get("gain") is not None and (deploy or feed.get("when", "deploy") == "always"):
+    feed = _switched_on(rcfg, "feed_forward", "gain", deploy=deploy)
+    if feed is not None:
         base = leader_accel_feed_policy(base, env, gain=feed.gain, accel_max=feed.accel_max, speeds=tuple(feed.speeds))
     catch = _catch_up(rcfg, deploy=deploy)
     if catch is not None:
