@@ -25,11 +25,11 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
 from mixed_traffic.physics import committed_answer_accel, idm_accel
-from transforms.specs import carry_to_next, entries_or_none, reset_state
+from transforms.specs import carry_to_next, entries_or_none, reset_state, with_state_spec
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 TAU, SIGN = ("answer", "tau"), ("answer", "sign")
@@ -180,12 +180,7 @@ class CommittedAnswer(Transform):
         raise RuntimeError("CommittedAnswer replaces a live env's action; use it inside an env")
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        leaf = observation_spec[SPEED]
-        observation_spec["answer"] = Composite(
-            tau=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
-            sign=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
-            shape=observation_spec.shape, device=observation_spec.device)
-        return observation_spec
+        return with_state_spec(observation_spec, "answer", SPEED, tau=None, sign=None)
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(horizon={self.horizon}, horizon_min={self.horizon_min}, start={self.start}, "

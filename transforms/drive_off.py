@@ -30,11 +30,11 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
 from transforms.safety_layer import safe_accel_upper
-from transforms.specs import carry_to_next, entries_or_none, reset_state
+from transforms.specs import carry_to_next, entries_or_none, reset_state, with_state_spec
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
@@ -187,12 +187,7 @@ class DriveOffCap(Transform):
         raise RuntimeError("DriveOffCap caps a live env's action; use it inside an env")
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        leaf = observation_spec[SPEED]
-        observation_spec["drive_off"] = Composite(
-            engaged=Unbounded(shape=leaf.shape, dtype=torch.bool, device=leaf.device),
-            calm=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
-            shape=observation_spec.shape, device=observation_spec.device)
-        return observation_spec
+        return with_state_spec(observation_spec, "drive_off", SPEED, engaged=torch.bool, calm=None)
 
     def __repr__(self) -> str:
         follow = "" if self.follow is None else f", follow={self.follow} above {self.follow_above}"

@@ -21,10 +21,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import carry_to_next, entries_or_none, kept_rows
+from transforms.specs import carry_to_next, entries_or_none, kept_rows, with_state_spec
 
 GAP, TIME, LEADER_SPEED = ("cav", "gap"), ("traffic", "time"), ("cav", "leader_speed")
 SHARE = ("join", "share")
@@ -160,10 +160,7 @@ class JoinBlend(Transform):
         raise RuntimeError("JoinBlend blends a live env's action; use it inside an env")
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        leaf = observation_spec[self.gap_key]
-        observation_spec["join"] = Composite(share=Unbounded(shape=leaf.shape, dtype=leaf.dtype, device=leaf.device),
-                                             shape=observation_spec.shape, device=observation_spec.device)
-        return observation_spec
+        return with_state_spec(observation_spec, "join", self.gap_key, share=None)
 
     def __repr__(self) -> str:
         seconds = "" if self.seconds is None else f", seconds={self.seconds}"

@@ -16,10 +16,10 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import kept_rows
+from transforms.specs import kept_rows, with_state_spec
 
 LEADER_SPEED, LEADER_ACCEL, AGE = ("cav", "leader_speed"), ("cav", "leader_accel"), ("v2v", "age")
 
@@ -114,12 +114,8 @@ class OnboardLeaderAccel(Transform):
         raise RuntimeError("OnboardLeaderAccel differentiates a live env's entry over time; use it inside an env")
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        leaf = observation_spec[self.speed_key]
-        kw = dict(shape=leaf.shape, device=leaf.device)
-        observation_spec["onboard_accel"] = Composite(
-            estimate=Unbounded(dtype=leaf.dtype, **kw), speed=Unbounded(dtype=leaf.dtype, **kw),
-            used=Unbounded(dtype=torch.bool, **kw), shape=observation_spec.shape, device=observation_spec.device)
-        return observation_spec
+        return with_state_spec(observation_spec, "onboard_accel", self.speed_key, estimate=None, speed=None,
+                               used=torch.bool)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(dt={self.dt}, after={self.after}, tau={self.tau})"

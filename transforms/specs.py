@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Composite, Unbounded
 
 
@@ -95,6 +96,18 @@ def reset_state(tensordict, tensordict_reset, fresh: dict):
             value = torch.where(keep, tensordict.get(key).to(value), value)
         tensordict_reset.set(key, value)
     return tensordict_reset
+
+
+def with_state_spec(observation_spec: Composite, group: str, like: NestedKey, **dtypes) -> Composite:
+    """Adds a transform's per-row state entries to ``observation_spec``: ``group`` holds one unbounded leaf per name
+    of ``dtypes`` (``{name: dtype}``; None: the dtype of ``like``), each shaped as the entry ``like``; returns the
+    spec."""
+    leaf = observation_spec[like]
+    observation_spec[group] = Composite(
+        **{name: Unbounded(shape=leaf.shape, dtype=leaf.dtype if dtype is None else dtype, device=leaf.device)
+           for name, dtype in dtypes.items()},
+        shape=observation_spec.shape, device=observation_spec.device)
+    return observation_spec
 
 
 def profile_table(owner: str, field: str, values: dict, kinds) -> torch.Tensor:
