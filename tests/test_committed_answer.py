@@ -178,3 +178,14 @@ def test_with_catch_up_the_base_catch_up_lifts_the_answer_near_the_band_top_and_
     a_plain, a_lifted = (t.answer(gap, v, vl, zeros, zeros, a_l)[0] for t in (plain, lifted))
     assert float(a_lifted[0]) > float(a_plain[0]) + 0.3  # a leader pulling away near the top: the catch-up lifts it
     assert float(a_lifted[1]) == pytest.approx(float(a_plain[1]))  # mid-band: the same answer
+
+
+def test_a_step_before_a_reset_through_the_transformed_env_names_the_missing_state():
+    base = make_env("ring", batch_size=2, seed=0)
+    env = TransformedEnv(base, Compose(CommittedAnswer(dt=base.scenario.dt),
+                                       ResidualAction(make_classic_policy("idm", base), weight=0.0)))
+    td = base.reset().set("action", torch.zeros(2, 1))  # the base env's reset: no answer state in it
+    with pytest.raises(RuntimeError, match=r"CommittedAnswer: the step's input has no answer state; reset the env "
+                                           r"through the TransformedEnv"):
+        env.step(td)
+    env.step(env.reset().set("action", torch.zeros(2, 1)))  # through the TransformedEnv it steps

@@ -29,7 +29,7 @@ from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
 from mixed_traffic.physics import committed_answer_accel, idm_accel
-from transforms.specs import carry_to_next, entries_or_none, reset_state, with_state_spec
+from transforms.specs import carry_to_next, entries_or_none, reset_state, state_entries, with_state_spec
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 TAU, SIGN = ("answer", "tau"), ("answer", "sign")
@@ -146,10 +146,7 @@ class CommittedAnswer(Transform):
         if got is None:
             return tensordict
         (a,) = got
-        tau, sign = tensordict.get(TAU, None), tensordict.get(SIGN, None)
-        if tau is None or sign is None:
-            raise RuntimeError("CommittedAnswer: the step's input has no answer state; reset the env through the "
-                               "TransformedEnv before stepping it")
+        tau, sign = state_entries("CommittedAnswer", tensordict, "answer", TAU, SIGN)
         gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
         a_l = None
         if self.reads_leader_accel:

@@ -34,7 +34,7 @@ from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
 from transforms.safety_layer import safe_accel_upper
-from transforms.specs import carry_to_next, entries_or_none, reset_state, with_state_spec
+from transforms.specs import carry_to_next, entries_or_none, reset_state, state_entries, with_state_spec
 
 GAP, SPEED, LEADER_SPEED, LEADER_ACCEL = ("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "leader_accel")
 ENGAGED, CALM = ("drive_off", "engaged"), ("drive_off", "calm")
@@ -153,10 +153,7 @@ class DriveOffCap(Transform):
         if got is None:
             return tensordict
         (a,) = got
-        engaged, calm = tensordict.get(ENGAGED, None), tensordict.get(CALM, None)
-        if engaged is None or calm is None:
-            raise RuntimeError("DriveOffCap: the step's input has no drive-off state; reset the env through the "
-                               "TransformedEnv before stepping it")
+        engaged, calm = state_entries("DriveOffCap", tensordict, "drive-off", ENGAGED, CALM)
         gap, v, v_l = (tensordict.get(k).to(a.dtype).reshape(a.shape) for k in (GAP, SPEED, LEADER_SPEED))
         a_l = None
         if self.follow is not None:

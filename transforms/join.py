@@ -24,7 +24,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import carry_to_next, entries_or_none, kept_rows, with_state_spec
+from transforms.specs import carry_to_next, entries_or_none, kept_rows, state_entries, with_state_spec
 
 GAP, TIME, LEADER_SPEED = ("cav", "gap"), ("traffic", "time"), ("cav", "leader_speed")
 SHARE = ("join", "share")
@@ -121,10 +121,7 @@ class JoinBlend(Transform):
         if got is None:
             return tensordict
         (a,) = got
-        share = tensordict.get(SHARE, None)
-        if share is None:
-            raise RuntimeError("JoinBlend: the step's input has no join state; reset the env through the "
-                               "TransformedEnv before stepping it")
+        (share,) = state_entries("JoinBlend", tensordict, "join", SHARE)
         share = share.to(a.dtype).reshape(a.shape)
         if bool((share >= 1.0).all()):  # every row has joined: the law need not run
             return tensordict

@@ -45,6 +45,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from transforms.sensor_noise import check_layout, observation_shift
+from transforms.specs import state_entries
 
 MEASURED = (("cav", "gap"), ("cav", "speed"), ("cav", "leader_speed"), ("cav", "head_gap"), ("cav", "head_speed"))
 OWN_ACCEL, LEADER_ACCEL = ("cav", "accel"), ("cav", "leader_accel")
@@ -283,10 +284,7 @@ class MeasurementFilter(Transform):
         return a_l
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        prev = tensordict.get(STATE, None)
-        if prev is None:
-            raise RuntimeError("MeasurementFilter: the step's input has no filter state; reset the env through "
-                               "the TransformedEnv before stepping it")
+        (prev,) = state_entries("MeasurementFilter", tensordict, "filter", STATE)
         z = self._z(next_tensordict)
         F, B, K, flags, H = self._matrices(z.shape[-2], z)
         a = next_tensordict.get(OWN_ACCEL)

@@ -20,6 +20,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from transforms.specs import state_entries
+
 GAPS = (("cav", "gap"), ("cav", "head_gap"))
 SPEEDS = (("cav", "speed"), ("cav", "leader_speed"), ("cav", "head_speed"))
 
@@ -150,9 +152,7 @@ class SensorNoise(Transform):
         return self._measure(tensordict_reset, None)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        if tensordict.get(self._state_key(GAPS[0]), None) is None:
-            raise RuntimeError("SensorNoise: the step's input has no noise state; reset the env through the "
-                               "TransformedEnv before stepping it")
+        state_entries("SensorNoise", tensordict, "noise", self._state_key(GAPS[0]))
         return self._measure(next_tensordict, tensordict)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:

@@ -74,6 +74,17 @@ def carry_to_next(tensordict, next_tensordict, *keys):
     return next_tensordict
 
 
+def state_entries(owner: str, tensordict, what: str, *keys) -> list:
+    """``[tensordict[k] for k in keys]``, a transform's state entries on the step's input; ``RuntimeError`` naming
+    ``owner`` and its ``what`` state when one is missing (the env was stepped before a reset through the
+    ``TransformedEnv``)."""
+    values = [tensordict.get(k, None) for k in keys]
+    if any(v is None for v in values):
+        raise RuntimeError(f"{owner}: the step's input has no {what} state; reset the env through the TransformedEnv "
+                           "before stepping it")
+    return values
+
+
 def kept_rows(tensordict, like: torch.Tensor, state_key) -> torch.Tensor | None:
     """Where a reset keeps a transform's state: ``True`` on the rows a partial reset (``"_reset"`` in
     ``tensordict``) leaves alone, broadcast to ``like``'s shape; None when every row starts afresh (a full reset,

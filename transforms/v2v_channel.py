@@ -18,7 +18,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from transforms.specs import kept_rows
+from transforms.specs import kept_rows, state_entries
 
 LEADER_ACCEL = ("cav", "leader_accel")
 
@@ -91,10 +91,7 @@ class V2VChannel(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         now = next_tensordict.get(self.accel_key)
-        sent, held, age = (tensordict.get(k, None) for k in (self.sent_key, self.held_key, self.age_key))
-        if sent is None or held is None or age is None:
-            raise RuntimeError("V2VChannel: the step's input has no link state; reset the env through the "
-                               "TransformedEnv before stepping it")
+        sent, held, age = state_entries("V2VChannel", tensordict, "link", self.sent_key, self.held_key, self.age_key)
         if self.delay_steps:
             out = sent[..., 0]
             next_tensordict.set(self.sent_key, torch.cat([sent[..., 1:], now.unsqueeze(-1)], -1))
