@@ -394,6 +394,29 @@ and across the speeds where the residual fades out (18-20 m/s):
 - ``ramps_18_25``: ``random_ramps`` at 18-25 m/s;
 - ``perturbation_21_p10_ring_300``: ``random_perturbation`` around 21 m/s, +-2 m/s knots every 10 s, on a 300 m ring.
 
+Nine more (``--cases fresh_23``), fixed after fresh_22 and fresh_22_fast were scored and before anything ran on
+them: a sixteenth out-of-sample set, the test of any change made after fresh_22; the same mix:
+
+- ``sine_11_p55_ring_280``: ``sine`` at 11 +- 2 m/s, period 55 s, on a 280 m ring;
+- ``sine_15_p35_humans_25pct``: ``sine`` at 15 +- 2 m/s, period 35 s, with the humans' parameters spread +-25 %;
+- ``ramps_3_11_ring_290``: ``random_ramps`` at 3-11 m/s on a 290 m ring;
+- ``ramps_10_17_ring_250``: ``random_ramps`` at 10-17 m/s on a 250 m ring;
+- ``perturbation_12_p8_humans_20pct``: ``random_perturbation`` around 12 m/s, +-2 m/s knots every 8 s, with the
+  humans' parameters spread +-20 %;
+- ``steps_7_14_ring_320``: ``random_steps`` at 7-14 m/s, period 19 s, on a 320 m ring;
+- ``random_stops_brisk_short_stands``: ``random_stop_and_go`` with holds of 5-11 s at 8-14 m/s, stands of 2-5 s,
+  braking and driving off at 1.4-2.4 m/s^2;
+- ``brake_from_15_ring_290``: ``emergency_brake`` from 15 m/s down to 0 m/s at 65 s, on a 290 m ring;
+- ``ramps_20_26_ring_270``: ``random_ramps`` at 20-26 m/s on a 270 m ring, above the training range.
+
+Four more (``--cases fresh_23_fast``), fixed with fresh_23 and before anything ran on them, above the training range
+and across the speeds where the residual fades out (18-20 m/s):
+
+- ``sine_21_p50_humans_20pct``: ``sine`` at 21 +- 2 m/s, period 50 s, with the humans' parameters spread +-20 %;
+- ``steps_18_25_ring_300``: ``random_steps`` at 18-25 m/s, period 21 s, on a 300 m ring;
+- ``ramps_19_26_humans_15pct``: ``random_ramps`` at 19-26 m/s with the humans' parameters spread +-15 %;
+- ``perturbation_20_p9_ring_280``: ``random_perturbation`` around 20 m/s, +-2 m/s knots every 9 s, on a 280 m ring.
+
 One case that is not held out (``--cases training``, outside the scorecard): ``training_ramps``, the training profile
 itself (``random_ramps`` at 2-20 m/s on the training ring), on episodes of the evaluation seed: how the policy
 compares with the classical controllers on the heads it learned on.
@@ -408,6 +431,9 @@ on the same episodes (same evaluation seed). Writes ``OUT/generalization.md`` an
 (``OUT/<case>.png``); ``--jerk-by-speed 16 20`` also splits each controller's mean |jerk| by the CAV's
 speed (below 16, 16-20 and from 20 m/s), to show where in speed a controller's jerk is, and
 ``--jerk-by-time 20`` by the time (the first 20 s, the warm-up that closes the long start, and the rest).
+``--backend sumo`` runs every controller in SUMO instead (libsumo, speed mode 0, ``--workers`` processes;
+:mod:`mixed_traffic.evaluation.sumo`): the same episodes and cases, the policy without its layer from the same
+three starts, the same table.
 
     python benchmarks/ring_generalization.py --checkpoint outputs/results/ring_lagrangian_ppo_seed0 \\
         --episodes 5 --seconds 200 --out outputs/results/ring_lagrangian_ppo_seed0/generalization
@@ -929,6 +955,41 @@ def cases(seconds: float) -> dict[str, dict]:
         "perturbation_21_p10_ring_300": {"profile": "random_perturbation", "kwargs": {"v_star": 21.0, "amplitude": 2.0,
                                                                                       "period": 10.0},
                                          "env": {"ring_length": 300.0}},
+        # fresh_23 and fresh_23_fast: fixed on 2026-12-02 after fresh_22 / fresh_22_fast were scored, before anything
+        # ran on them: a sixteenth out-of-sample set and a seventh set above the training range, the test of any
+        # change made after fresh_22
+        "sine_11_p55_ring_280": {"profile": "sine", "kwargs": {"v_star": 11.0, "amplitude": 2.0, "period": 55.0},
+                                 "env": {"ring_length": 280.0}},
+        "sine_15_p35_humans_25pct": {"profile": "sine", "kwargs": {"v_star": 15.0, "amplitude": 2.0, "period": 35.0},
+                                     "eval": {"hdv_param_noise": 0.25}},
+        "ramps_3_11_ring_290": {"profile": "random_ramps", "kwargs": {"v_low": 3.0, "v_high": 11.0},
+                                "env": {"ring_length": 290.0}},
+        "ramps_10_17_ring_250": {"profile": "random_ramps", "kwargs": {"v_low": 10.0, "v_high": 17.0},
+                                 "env": {"ring_length": 250.0}},
+        "perturbation_12_p8_humans_20pct": {"profile": "random_perturbation", "kwargs": {"v_star": 12.0,
+                                                                                         "amplitude": 2.0, "period": 8.0},
+                                            "eval": {"hdv_param_noise": 0.2}},
+        "steps_7_14_ring_320": {"profile": "random_steps", "kwargs": {"v_low": 7.0, "v_high": 14.0, "period": 19.0,
+                                                                      "v_init": 10.0},
+                                "env": {"ring_length": 320.0}},
+        "random_stops_brisk_short_stands": {"profile": "random_stop_and_go", "kwargs": {
+            "v_low": 8.0, "v_high": 14.0, "hold_min": 5.0, "hold_max": 11.0, "stop_min": 2.0, "stop_max": 5.0,
+            "rate_min": 1.4, "rate_max": 2.4}},
+        "brake_from_15_ring_290": {"profile": "emergency_brake", "kwargs": {"start": 65.0, "v_cruise": 15.0,
+                                                                            "v_low": 0.0},
+                                   "env": {"ring_length": 290.0}},
+        "ramps_20_26_ring_270": {"profile": "random_ramps", "kwargs": {"v_low": 20.0, "v_high": 26.0},
+                                 "env": {"ring_length": 270.0}},
+        "sine_21_p50_humans_20pct": {"profile": "sine", "kwargs": {"v_star": 21.0, "amplitude": 2.0, "period": 50.0},
+                                     "eval": {"hdv_param_noise": 0.2}},
+        "steps_18_25_ring_300": {"profile": "random_steps", "kwargs": {"v_low": 18.0, "v_high": 25.0, "period": 21.0,
+                                                                       "v_init": 21.0},
+                                 "env": {"ring_length": 300.0}},
+        "ramps_19_26_humans_15pct": {"profile": "random_ramps", "kwargs": {"v_low": 19.0, "v_high": 26.0},
+                                     "eval": {"hdv_param_noise": 0.15}},
+        "perturbation_20_p9_ring_280": {"profile": "random_perturbation", "kwargs": {"v_star": 20.0, "amplitude": 2.0,
+                                                                                     "period": 9.0},
+                                        "env": {"ring_length": 280.0}},
     }
 
 
@@ -987,6 +1048,11 @@ FRESH_22 = ("sine_13_p55_ring_260", "sine_10_p40_humans_20pct", "ramps_5_14_ring
             "perturbation_14_p9_ring_270", "steps_6_17_ring_290", "random_stops_mid_short_stands",
             "brake_from_17_ring_270", "sine_22_p45_ring_280")
 FRESH_22_FAST = ("sine_20_p55_humans_15pct", "steps_19_24_ring_270", "ramps_18_25", "perturbation_21_p10_ring_300")
+FRESH_23 = ("sine_11_p55_ring_280", "sine_15_p35_humans_25pct", "ramps_3_11_ring_290", "ramps_10_17_ring_250",
+            "perturbation_12_p8_humans_20pct", "steps_7_14_ring_320", "random_stops_brisk_short_stands",
+            "brake_from_15_ring_290", "ramps_20_26_ring_270")
+FRESH_23_FAST = ("sine_21_p50_humans_20pct", "steps_18_25_ring_300", "ramps_19_26_humans_15pct",
+                 "perturbation_20_p9_ring_280")
 TRAINING = ("training_ramps",)
 _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH_3, "fresh_4": FRESH_4,
           "random_stops": RANDOM_STOPS, "fresh_5": FRESH_5, "fresh_6": FRESH_6, "fresh_7": FRESH_7,
@@ -996,7 +1062,8 @@ _NAMED = {"fresh": FRESH, "fresh_2": FRESH_2, "tuning": TUNING, "fresh_3": FRESH
           "fresh_17_fast": FRESH_17_FAST, "fresh_18": FRESH_18, "fresh_18_fast": FRESH_18_FAST,
           "fresh_19": FRESH_19, "fresh_19_fast": FRESH_19_FAST, "fresh_20": FRESH_20,
           "fresh_20_fast": FRESH_20_FAST, "fresh_21": FRESH_21, "fresh_21_fast": FRESH_21_FAST,
-          "fresh_22": FRESH_22, "fresh_22_fast": FRESH_22_FAST, "training": TRAINING}
+          "fresh_22": FRESH_22, "fresh_22_fast": FRESH_22_FAST, "fresh_23": FRESH_23, "fresh_23_fast": FRESH_23_FAST,
+          "training": TRAINING}
 # held_out: every case of cases() that no named group holds, so a new group is named in _NAMED alone
 GROUPS = {"held_out": tuple(n for n in cases(0.0) if not any(n in g for g in _NAMED.values())), **_NAMED}
 
@@ -1163,6 +1230,12 @@ def main(argv=None) -> dict:
     p.add_argument("--set", nargs="+", default=[], metavar="transforms.KEY=VALUE",
                    help="deploy-time settings of the run's transforms for the policy and the 'base' baseline (e.g. "
                         "transforms.residual.drive_off.residual_play=0.2): a variant evaluated without retraining")
+    p.add_argument("--backend", choices=("torch", "sumo"), default="torch",
+                   help="the simulator every controller drives in (default torch; sumo: libsumo, speed mode 0, the "
+                        "same episodes, the layer-free starts included; about 15 times slower)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="with --backend sumo: SUMO processes side by side (default 2; 0: one episode at a time in "
+                        "this process)")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", action="store_true",
                    help="also write OUT/<case>.png: episode 0 from the standard start, speed, gap and command of the "
@@ -1176,6 +1249,8 @@ def main(argv=None) -> dict:
                    help="also split each controller's mean |jerk| by the time at these edges (s; e.g. 20: the first "
                         "20 s and the rest), the shares adding up to the whole (results' jerk_by_time)")
     a = p.parse_args(argv)
+    if a.workers < 0:
+        raise SystemExit(f"--workers: {a.workers} is invalid; allowed: >= 0 (0: SUMO in this process)")
     all_cases = cases(a.seconds)
     names = case_names(a.cases, all_cases)
     settings_set = parse_set(a.set)
@@ -1188,7 +1263,7 @@ def main(argv=None) -> dict:
     from omegaconf import open_dict
 
     from mixed_traffic.evaluation import classical_chain
-    from mixed_traffic.evaluation.harness import evaluate
+    from mixed_traffic.evaluation.harness import evaluate as evaluate_on_torch
     from mixed_traffic.evaluation.policies import (
         checkpoint_config,
         classic_factory,
@@ -1199,6 +1274,13 @@ def main(argv=None) -> dict:
     from mixed_traffic.evaluation.results import ZERO_RESIDUAL
     from mixed_traffic.validation import ConfigError, validate_config
 
+    evaluate = evaluate_on_torch
+    if a.backend == "sumo":  # the same episodes, case settings and report, with SUMO moving the cars
+        import functools
+
+        from mixed_traffic.evaluation.sumo import evaluate_on_sumo
+
+        evaluate = functools.partial(evaluate_on_sumo, workers=a.workers)
     torch.set_num_threads(1)
     run_cfg, state = checkpoint_config(a.checkpoint)
     run_cfg = apply_set(run_cfg, settings_set)
@@ -1266,7 +1348,7 @@ def main(argv=None) -> dict:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "generalization.json").write_text(json.dumps({"checkpoint": str(a.checkpoint), "episodes": a.episodes,
-                                                         "seconds": a.seconds, "seed": a.seed,
+                                                         "seconds": a.seconds, "seed": a.seed, "backend": a.backend,
                                                          "v2v": {"delay": a.v2v_delay, "loss": a.v2v_loss},
                                                          "sensor_noise": rep["sensor_noise"],  # as the evaluation ran it
                                                          "set": list(a.set),

@@ -5,7 +5,7 @@ evaluation seed (held_out 2000, fresh 5000, fresh_2 7000, fresh_3 8000, fresh_4 
 fresh_5 12000, fresh_6 13000, fresh_7 14000, fresh_8 15000, fresh_9 16000, fresh_10 17000, fresh_11 18000, fresh_12 19000,
 fresh_13 20000, fresh_14 21000, fresh_15 22000, fresh_16 23000, fresh_17 24000, fresh_17_fast 25000,
 fresh_18 26000, fresh_18_fast 27000, fresh_19 28000, fresh_19_fast 29000, fresh_20 30000, fresh_20_fast 31000, fresh_21 32000,
-fresh_21_fast 33000, fresh_22 34000, fresh_22_fast 35000),
+fresh_21_fast 33000, fresh_22 34000, fresh_22_fast 35000, fresh_23 36000, fresh_23_fast 37000),
 IDM-as-CAV beside every run and the classical controllers of ``--classical`` beside the first run only (they do
 not depend on the policy: the same episodes in every run; ``zero_residual``, the first run's deployed controller
 with its learned residual at zero, stands for every run's when they share their config, as seeds of one experiment
@@ -41,7 +41,8 @@ SEEDS = {"held_out": 2000, "fresh": 5000, "fresh_2": 7000, "fresh_3": 8000, "fre
          "fresh_18": 26000, "fresh_18_fast": 27000,
          "fresh_19": 28000, "fresh_19_fast": 29000,
          "fresh_20": 30000, "fresh_20_fast": 31000,
-         "fresh_21": 32000, "fresh_21_fast": 33000, "fresh_22": 34000, "fresh_22_fast": 35000}
+         "fresh_21": 32000, "fresh_21_fast": 33000, "fresh_22": 34000, "fresh_22_fast": 35000,
+         "fresh_23": 36000, "fresh_23_fast": 37000}
 CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc", "zero_residual")  # IDM_cav (b = 2), the best classical; CACC. They
 # stand in for a colliding IDM-as-CAV as the reference of the jerk and return bars (results.REFERENCE_FALLBACK, the same
 # two). zero_residual: the run's deployed controller with its learned residual at zero (results.ZERO_RESIDUAL)

@@ -52,6 +52,15 @@ def test_sumo_report_matches_torch_and_safety_layer_holds():
     assert sumo["overall"]["min_gap"] < S_MIN + 3.0  # the layer, not the distance, kept it apart
     # the same episode in both simulators
     assert ps["metrics"]["min_gap"]["min"] == pytest.approx(pt["metrics"]["min_gap"]["min"], abs=0.3)
+    # the policy itself, without the layer, from the standard start and the close starts: it drives into its
+    # leader on SUMO as on torch, and the acceptance says so
+    free_s, free_t = sumo["without_layer"]["random_steps"], torch_rep["without_layer"]["random_steps"]
+    assert list(free_s) == list(free_t) == ["standard (73.4 m)", "8 m", "15 m"]
+    for label in free_s:
+        assert free_s[label]["collisions"] == free_t[label]["collisions"] == 1, label
+    assert abs(float(traces["random_steps_without_layer_close"].gap[0, 0]) - 8.0) < 1.0  # it did start 8 m back
+    assert not sumo["acceptance"]["no_layer_zero_collisions"] and not sumo["acceptance"]["pass"]
+    assert "random_steps_without_layer_close" in traces
 
 
 def test_sumo_evaluates_the_deployed_chain_as_torch_does():
@@ -63,7 +72,8 @@ def test_sumo_evaluates_the_deployed_chain_as_torch_does():
     from mixed_traffic.evaluation.sumo import make_sumo_eval_env
     from transforms import DriveOffCap, JerkPenalty, ResidualAction, SafetyLayer
 
-    cfg = compose([f"experiment={DEFAULT_EXPERIMENT}", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5"])
+    cfg = compose([f"experiment={DEFAULT_EXPERIMENT}", "eval.warmup_seconds=1.0", "eval.settle_seconds=0.5",
+                   "eval.without_layer=false"])  # the layer-free runs: test_sumo_report_matches_torch_...
     assert "jerk_penalty" in cfg.transforms.chain and cfg.transforms.residual.envelope_fade == "deploy"
     env = make_sumo_eval_env(cfg, [7], in_process=True, **eval_env_overrides(cfg, "random_steps"))
     try:
@@ -95,7 +105,7 @@ def test_full_throttle_collides_without_the_safety_layer():
 def test_sumo_parallel_workers_give_the_in_process_episodes():
     """ParallelEnv(2) (3 episodes: rounds of 2 + 1) reproduces the in-process episodes, seed by seed."""
     cfg = compose(["experiment=ring_lagrangian_ppo", "transforms=safe", "eval.warmup_seconds=1.0",
-                   "eval.settle_seconds=0.5"])
+                   "eval.settle_seconds=0.5", "eval.without_layer=false"])
     kw = dict(policy_factory=_full_throttle, profiles=["random_steps"], episodes=3, seed=11, episode_seconds=5.0)
     par, _ = evaluate_on_sumo(cfg, workers=2, **kw)
     seq, _ = evaluate_on_sumo(cfg, workers=0, **kw)
@@ -110,11 +120,15 @@ def test_mt_eval_backend_sumo_writes_the_same_report(tmp_path):
     from mixed_traffic.evaluation import evaluate_and_report
 
     cfg = compose(["experiment=ring_lagrangian_ppo", "controller=idm", "env.backend=sumo", "eval.episodes=1",
-                   "eval.episode_seconds=20", "eval.warmup_seconds=5", "eval.profiles=[emergency_brake]"])
+                   "eval.episode_seconds=20", "eval.warmup_seconds=5", "eval.profiles=[emergency_brake]",
+                   "eval.close_starts=[8.0]"])  # one close start: each layer-free start is a SUMO run of its own
     rep = evaluate_and_report(cfg, tmp_path)
     assert rep["backend"] == "sumo" and rep["speed_mode"] == 0
     assert (tmp_path / "report.md").is_file() and (tmp_path / "report.json").is_file()
     assert rep["overall"]["collisions"] == 0
+    # the layer-free bars are there, as on torch: IDM-as-CAV without the layer, from the close start too
+    assert list(rep["without_layer"]["emergency_brake"]) == ["standard (73.4 m)", "8 m"]
+    assert rep["acceptance"]["no_layer_zero_collisions"] is True
 
 
 @pytest.mark.parametrize("sensor_filter", [False, True])
@@ -148,7 +162,7 @@ def test_the_drive_off_cap_acts_in_sumo_as_on_torch():
     zero = TensorDictModule(lambda v: torch.zeros_like(v), in_keys=[("cav", "speed")], out_keys=["action"])
     over = {}
     for name in ("ring_lagrangian_ppo_v2v", "ring_lagrangian_ppo_drive_off"):
-        cfg = compose([f"experiment={name}", "eval.profiles=[piecewise]"])
+        cfg = compose([f"experiment={name}", "eval.profiles=[piecewise]", "eval.without_layer=false"])
         with open_dict(cfg):
             cfg.eval.profile_kwargs = OmegaConf.create({"piecewise": stop})
         kw = dict(policy_factory=lambda env: zero, profiles=["piecewise"], episodes=1, seed=7, episode_seconds=70.0)
@@ -160,3 +174,31 @@ def test_the_drive_off_cap_acts_in_sumo_as_on_torch():
     for backend in ("sumo", "torch"):
         assert over["ring_lagrangian_ppo_v2v", backend] > 0.8, over  # the base passes the head's speed
         assert over["ring_lagrangian_ppo_drive_off", backend] < 0.16, over  # under the cap: the overspeed, 0.15 m/s
+
+
+def test_generalization_runs_a_case_on_sumo_as_on_torch(tmp_path, benchmark_script):
+    """benchmarks/ring_generalization.py --backend sumo: a held-out case (random steps on a 250-m ring) in SUMO, on
+    the same episodes and in the same table as on torch: the policy with its layer, without it from the three starts,
+    and IDM-as-CAV, each within what the two simulators differ by; the backend is recorded, and a bad --workers
+    fails before anything runs."""
+    import json
+
+    from tests.test_policy_itself import _tiny_scratch_run
+
+    run = _tiny_scratch_run(tmp_path / "run")
+    mod = benchmark_script("ring_generalization")
+    common = ["--checkpoint", str(run), "--episodes", "1", "--seconds", "15", "--cases", "ring_250", "--baselines", "idm"]
+    on_torch = mod.main([*common, "--out", str(tmp_path / "torch")])["ring_250"]
+    on_sumo = mod.main([*common, "--backend", "sumo", "--workers", "0", "--out", str(tmp_path / "sumo")])["ring_250"]
+    starts = list(on_torch["policy_without_layer"])
+    assert list(on_sumo["policy_without_layer"]) == starts and len(starts) == 3
+    pairs = [(on_sumo[k], on_torch[k]) for k in ("policy", "idm")]
+    pairs += [(on_sumo["policy_without_layer"][k], on_torch["policy_without_layer"][k]) for k in starts]
+    for s, t in pairs:
+        assert s["collisions"] == t["collisions"]
+        assert s["return"] == pytest.approx(t["return"], rel=0.01)
+        assert s["min_gap"] == pytest.approx(t["min_gap"], abs=0.3)
+    assert json.loads((tmp_path / "sumo" / "generalization.json").read_text())["backend"] == "sumo"
+    with pytest.raises(SystemExit, match="--workers: -1 is invalid"):
+        mod.main([*common, "--backend", "sumo", "--workers", "-1", "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()

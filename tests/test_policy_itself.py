@@ -383,7 +383,7 @@ def test_safety_layer_active_rows_leave_the_other_rows_raw():
 
 def test_batched_evaluation_matches_one_profile_at_a_time():
     """The one-rollout evaluation runs the same episodes as separate runs per profile and start."""
-    from mixed_traffic.evaluation.harness import run_batched, run_profile
+    from mixed_traffic.evaluation.harness import LAYER_FREE_WITHOUT, run_batched, run_profile
 
     cfg = compose(["experiment=ring_lagrangian_ppo_scratch", "eval.hdv_param_noise=0.0",
                    "eval.profiles=[emergency_brake,sine]"] + SHORT[:4] + ["eval.profile_kwargs.emergency_brake.start=10.0"])
@@ -393,10 +393,32 @@ def test_batched_evaluation_matches_one_profile_at_a_time():
     for prof in ("emergency_brake", "sine"):
         m, _ = run_profile(cfg, None, prof, episodes=2, seed=0, policy_factory=idm)
         assert torch.allclose(with_layer[prof][0]["return"], m["return"], atol=1e-3)
-        m8, _ = run_profile(cfg, None, prof, episodes=2, seed=0, policy_factory=idm, without=("safety_layer", "intervention_cost"),
+        m8, _ = run_profile(cfg, None, prof, episodes=2, seed=0, policy_factory=idm, without=LAYER_FREE_WITHOUT,
                             init_spacing_rows=[8.0])
         assert torch.allclose(free[prof]["8 m"][0]["return"], m8["return"], atol=1e-3)
         assert torch.allclose(free[prof]["8 m"][0]["min_gap"], m8["min_gap"], atol=1e-4)
+
+
+def test_a_one_profile_runner_reports_the_same_layer_free_runs():
+    """An evaluation run one profile at a time (a ``runner``: the SUMO evaluation's path, here on torch) runs the
+    policy without its layer from the same starts as the batched one, with the same figures and bars."""
+    from mixed_traffic.evaluation.sumo import evaluate_on_torch_seeds
+
+    cfg = compose(["experiment=ring_lagrangian_ppo_scratch"] + SHORT)
+    kw = dict(policy_factory=_throttle, profiles=["random_steps"], episodes=2, seed=0)
+    batched, _ = evaluate(cfg, **kw)
+    one, traces = evaluate_on_torch_seeds(cfg, **kw)
+    free, ref = one["without_layer"]["random_steps"], batched["without_layer"]["random_steps"]
+    assert list(free) == list(ref) == ["standard (73.4 m)", "8 m", "15 m"]
+    for label, entry in ref.items():
+        assert free[label]["collisions"] == entry["collisions"] == 2  # full throttle collides without the layer
+        assert free[label]["per_episode"]["min_gap"] == pytest.approx(entry["per_episode"]["min_gap"], abs=1e-4)
+        assert free[label]["per_episode"]["return"] == pytest.approx(entry["per_episode"]["return"], rel=1e-5)
+    assert one["overall"]["collisions"] == 0  # with the layer
+    for key in ("no_layer_zero_collisions", "no_layer_min_gap_after_warmup", "no_layer_gap_within_bounds", "pass"):
+        assert one["acceptance"][key] == pytest.approx(batched["acceptance"][key]), key
+    assert not one["acceptance"]["no_layer_zero_collisions"] and not one["acceptance"]["pass"]
+    assert "random_steps_without_layer" in traces and "random_steps_without_layer_close" in traces
 
 
 def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path, benchmark_script):
@@ -474,6 +496,10 @@ def test_policy_on_sumo_set_deploys_a_variant_on_both_backends(tmp_path, benchma
     item = "transforms.safety_layer.deployed_s_max=false"
     reports = mod.main([*common, "--set", item, "--out", str(tmp_path / "v")])
     assert reports["sumo"]["set"] == reports["torch"]["set"] == [item]
+    for rep in reports.values():  # the policy without its layer too, from the three starts, on both backends
+        assert len(rep["without_layer"]["random_steps"]) == 3 and "no_layer_zero_collisions" in rep["acceptance"]
+    only = mod.main([*common, "--with-layer-only", "--no-torch", "--out", str(tmp_path / "only")])["sumo"]
+    assert "without_layer" not in only and "no_layer_zero_collisions" not in only["acceptance"]
     assert json.loads((tmp_path / "v" / "report.json").read_text())["set"] == [item]
     assert f"with {item}" in (tmp_path / "v" / "comparison.md").read_text()
     for bad, said in ((["transforms.safety_layer.s_mni=4"], "transforms.safety_layer.s_mni: not a setting"),
@@ -927,7 +953,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
                                          r"'fresh_8', 'fresh_9', 'fresh_10', 'fresh_11', 'fresh_12', 'fresh_13', 'fresh_14', "
                                          r"'fresh_15', 'fresh_16', 'fresh_17', 'fresh_17_fast', 'fresh_18', 'fresh_18_fast', "
                                          r"'fresh_19', 'fresh_19_fast', 'fresh_20', 'fresh_20_fast', 'fresh_21', "
-                                         r"'fresh_21_fast', 'fresh_22', 'fresh_22_fast', 'training'\]"):
+                                         r"'fresh_21_fast', 'fresh_22', 'fresh_22_fast', 'fresh_23', 'fresh_23_fast', "
+                                         r"'training'\]"):
         mod.case_names(["sine_fastest"], all_cases)
     groups = [set(g) for g in mod.GROUPS.values()]
     assert sum(map(len, groups)) == len(set().union(*groups)) == len(all_cases)  # disjoint, covering every case
@@ -940,7 +967,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
     assert len(mod.GROUPS["fresh_19"]) == len(mod.GROUPS["fresh_20"]) == len(mod.GROUPS["fresh_21"]) == 9
     assert len(mod.GROUPS["fresh_17_fast"]) == len(mod.GROUPS["fresh_18_fast"]) == len(mod.GROUPS["fresh_19_fast"]) == 4
     assert len(mod.GROUPS["fresh_20_fast"]) == len(mod.GROUPS["fresh_21_fast"]) == len(mod.GROUPS["fresh_22_fast"]) == 4
-    assert len(mod.GROUPS["fresh_22"]) == 9
+    assert len(mod.GROUPS["fresh_22"]) == len(mod.GROUPS["fresh_23"]) == 9
+    assert len(mod.GROUPS["fresh_23_fast"]) == 4
     with pytest.raises(SystemExit, match=r"--jerk-by-speed: \[20.0, 16.0\] is invalid; allowed: increasing"):
         mod.main(["--checkpoint", "none", "--jerk-by-speed", "20", "16", "--out", "none"])  # before any loading
     with pytest.raises(SystemExit, match=r"--jerk-by-time: \[0.0\] is invalid; allowed: increasing times > 0"):
@@ -978,7 +1006,7 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
         assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
         assert (float(v.max()) > 20.5) == (name in above), name
     assert float(head_speeds("random_stops_slow_long", 12000).min()) == 0.0
-    # fresh_6 to fresh_22: each within the CAV's reach, one case above the training speeds, two that stand still
+    # fresh_6 to fresh_23: each within the CAV's reach, one case above the training speeds, two that stand still
     for group, seed, above, stand in (("fresh_6", 13000, "sine_22_p35", ("random_stops_mid", "brake_from_15_late")),
                                       ("fresh_7", 14000, "steps_20_26", ("random_stops_short", "brake_from_11")),
                                       ("fresh_8", 15000, "sine_21_p40", ("random_stops_long", "brake_from_14")),
@@ -1005,7 +1033,9 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
                                       ("fresh_21", 32000, "steps_20_24_ring_300",
                                        ("random_stops_slow_short_holds", "brake_from_18_ring_300")),
                                       ("fresh_22", 34000, "sine_22_p45_ring_280",
-                                       ("random_stops_mid_short_stands", "brake_from_17_ring_270"))):
+                                       ("random_stops_mid_short_stands", "brake_from_17_ring_270")),
+                                      ("fresh_23", 36000, "ramps_20_26_ring_270",
+                                       ("random_stops_brisk_short_stands", "brake_from_15_ring_290"))):
         for name in mod.GROUPS[group]:
             v = head_speeds(name, seed)
             assert float(v.min()) >= 0.0 and float(v.max()) <= 28.0 + 1e-4, name
@@ -1013,7 +1043,8 @@ def test_generalization_fresh_cases_drive_above_the_training_range_and_groups_ex
             assert (float(v.min()) == 0.0) == (name in stand), name
     # the fast groups: every case above the training speeds, none standing still
     for group, seed in (("fresh_17_fast", 25000), ("fresh_18_fast", 27000), ("fresh_19_fast", 29000),
-                        ("fresh_20_fast", 31000), ("fresh_21_fast", 33000), ("fresh_22_fast", 35000)):
+                        ("fresh_20_fast", 31000), ("fresh_21_fast", 33000), ("fresh_22_fast", 35000),
+                        ("fresh_23_fast", 37000)):
         for name in mod.GROUPS[group]:
             v = head_speeds(name, seed)
             assert float(v.min()) > 0.0 and float(v.max()) > 20.5 and float(v.max()) <= 28.0 + 1e-4, name

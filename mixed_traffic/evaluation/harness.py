@@ -31,7 +31,8 @@ The policy itself: with ``cfg.eval.without_layer`` every profile also runs with 
 layer switched off on some rows (:meth:`transforms.SafetyLayer.set_active_rows`; the
 intervention cost is then 0), so the policy's own command is executed, from the standard
 start and from each ``cfg.eval.close_starts`` spacing. All profiles and starts share one
-batched rollout (:func:`run_batched`). Its results are in
+batched rollout (:func:`run_batched`); a one-profile runner (the SUMO evaluation's) runs each
+start as episodes of its own, the layer dropped from the chain. Its results are in
 ``report["without_layer"][profile][start]`` and in ``report["acceptance"]``.
 
 Episodes: episode ``e`` of every profile is drawn from its own seed ``seed + e``
@@ -47,6 +48,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from omegaconf import DictConfig
@@ -309,6 +311,19 @@ def eval_scenario(cfg: DictConfig, profile: str):
     return get_scenario(cfg.env.scenario, **env_kwargs(cfg.env, **eval_env_overrides(cfg, profile)))
 
 
+LAYER_FREE_WITHOUT = ("safety_layer", "intervention_cost")
+"""What a one-profile runner drops from the chain to run the policy without its layer: the layer, and the cost of its
+interventions, which reads what the layer wrote (the batched rollout switches the layer off on some rows instead)."""
+
+
+def layer_free_starts(cfg: DictConfig, profile: str) -> list[tuple[str, float]]:
+    """The starts the policy runs from without its layer, ``(label, start gap in m)``: the profile's standard start
+    first, then each ``cfg.eval.close_starts`` (the labels of ``report["without_layer"][profile]``)."""
+    standard = eval_scenario(cfg, profile).initial_spacing()
+    return [(f"standard ({standard:.1f} m)", float(standard))] + [(f"{x:g} m", float(x))
+                                                                  for x in (cfg.eval.close_starts or [])]
+
+
 def split_rows(m: dict, tr: Trace, rows: torch.Tensor) -> tuple[dict, Trace]:
     """The metrics and trace of a subset of rows."""
     return ({k: v[rows] for k, v in m.items()}, Trace(**{f: getattr(tr, f)[rows] for f in Trace.__dataclass_fields__}))
@@ -331,10 +346,10 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
 
     P = len(profiles)
     scenarios = [eval_scenario(cfg, p) for p in profiles]
-    close = [float(x) for x in (cfg.eval.close_starts or [])]
+    labelled = [layer_free_starts(cfg, p) for p in profiles]
     # start gaps per profile: variant 0 (with the layer) and 1 start at the standard gap
-    starts = [[sc.initial_spacing()] + close for sc in scenarios]
-    V = 1 + (len(close) + 1 if layer_free else 0)
+    starts = [[gap for _, gap in lab] for lab in labelled]
+    V = 1 + (len(starts[0]) if layer_free else 0)
     ov = eval_env_overrides(cfg, profiles[0])
     ov["init_spacing_rows"] = tuple(starts[i % P][max(0, (i // P) % V - 1)] for i in range(P * V))  # row i % (P*V)
     env = make_transformed_env(cfg, num_envs=P * V * episodes, seed=seed, without=TRAINING_ONLY, deploy=True, **ov)
@@ -368,9 +383,8 @@ def run_batched(cfg: DictConfig, policy, profiles: list[str], *, episodes: int, 
     for j, prof in enumerate(profiles):
         with_layer[prof] = split_rows(m, trace, rows[(rows % P == j) & (variant == 0)])
         if layer_free:
-            labels = [f"standard ({starts[j][0]:.1f} m)"] + [f"{x:g} m" for x in close]
             without_layer[prof] = {label: split_rows(m, trace, rows[(rows % P == j) & (variant == v + 1)])
-                                   for v, label in enumerate(labels)}
+                                   for v, (label, _) in enumerate(labelled[j])}
     return with_layer, without_layer
 
 
@@ -429,8 +443,11 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     Pass ``policy`` (a module usable with any env of ``cfg``'s observation layout) or
     ``policy_factory(env) -> policy``. By default every profile (and, with
     ``cfg.eval.without_layer``, every layer-free start) runs in one batched torch rollout
-    (:func:`run_batched`); ``runner(cfg, policy, profile, ...)`` runs one profile at a time
-    instead (the SUMO evaluation passes its own).
+    (:func:`run_batched`); ``runner(cfg, policy, profile, *, episodes, seed, policy_factory, without,
+    init_spacing)`` runs one profile at a time instead (the SUMO evaluation passes its own): once with the chain
+    as configured (``without=()``, ``init_spacing=None``) and, with ``cfg.eval.without_layer``, once per start of
+    :func:`layer_free_starts` with :data:`LAYER_FREE_WITHOUT` dropped from the chain and the CAV starting
+    ``init_spacing`` m behind its leader, so its report holds the same layer-free bars.
     """
     profiles = list(profiles or cfg.eval.profiles)
     episodes = int(episodes or cfg.eval.episodes)
@@ -450,18 +467,25 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
     traces = {}
     all_m: dict[str, list] = {k: [] for k in METRICS}
     chain = list(cfg.transforms.chain)
-    layer_free = runner is None and "safety_layer" in chain and cfg.eval.get("without_layer", False)
+    layer_free = "safety_layer" in chain and bool(cfg.eval.get("without_layer", False))
     if runner is None:
         results, free = run_batched(cfg, policy, profiles, episodes=episodes, seed=seed,
                                     policy_factory=policy_factory, layer_free=layer_free)
-    else:
-        bar = tqdm(total=len(profiles), desc="evaluation", unit="profile", leave=False,
+    else:  # one profile and start at a time: with the layer, then without it from each start
+        starts = {prof: layer_free_starts(cfg, prof) if layer_free else [] for prof in profiles}
+        bar = tqdm(total=sum(1 + len(s) for s in starts.values()), desc="evaluation", unit="run", leave=False,
                    disable=not cfg.get("trainer", {}).get("progress", True))
         results, free = {}, {}
+        run = partial(runner, cfg, policy, episodes=episodes, seed=seed, policy_factory=policy_factory)
         for prof in profiles:
             bar.set_postfix_str(prof)
-            results[prof] = runner(cfg, policy, prof, episodes=episodes, seed=seed, policy_factory=policy_factory)
+            results[prof] = run(prof, without=(), init_spacing=None)
             bar.update()
+            free[prof] = {}
+            for label, gap in starts[prof]:
+                bar.set_postfix_str(f"{prof}, no layer, {label}")
+                free[prof][label] = run(prof, without=LAYER_FREE_WITHOUT, init_spacing=gap)
+                bar.update()
         bar.close()
     for prof in profiles:
         m, trace = results[prof]

@@ -30,6 +30,13 @@ rollout; the report is built by :func:`mixed_traffic.evaluation.harness.evaluate
 (with this module's per-profile runner in place of the torch one), so it has the same
 structure, plus ``backend``, ``episode_seconds``, ``episode_seeds``, ``workers`` and
 ``sumo_safety``; :func:`mixed_traffic.evaluation.report.write_report` writes it.
+
+The policy itself: with ``cfg.eval.without_layer`` (the default) and a safety layer in the chain, every profile
+also runs without the layer from the standard start and from each ``cfg.eval.close_starts`` gap, in episodes of
+its own (the layer and its intervention cost dropped from the chain, the SUMO ring started at that gap), so the
+report holds the same layer-free bars as the torch evaluation's (``report["without_layer"]``, the acceptance's
+``no_layer_*``). That runs each profile's episodes 1 + len(close_starts) + 1 times; ``eval.without_layer=false``
+skips it.
 """
 
 from __future__ import annotations
@@ -63,9 +70,9 @@ def eval_config(cfg: DictConfig, episode_seconds: float | None = None) -> DictCo
 
 
 def make_sumo_eval_env(cfg: DictConfig, seeds: list[int], *, sumo_safety: bool = False, in_process: bool = False,
-                       **env_overrides) -> TransformedEnv:
-    """``cfg``'s deployed transform chain, less the training-only terms, around ``ParallelEnv(len(seeds))`` of
-    SUMO rings, worker ``w`` seeded ``seeds[w]``.
+                       without: tuple[str, ...] = (), **env_overrides) -> TransformedEnv:
+    """``cfg``'s deployed transform chain, less the training-only terms (and ``without``), around
+    ``ParallelEnv(len(seeds))`` of SUMO rings, worker ``w`` seeded ``seeds[w]``.
 
     ``in_process=True`` (one seed only): the SUMO env itself, in this process, no worker
     (libsumo allows one live simulation per process).
@@ -95,7 +102,7 @@ def make_sumo_eval_env(cfg: DictConfig, seeds: list[int], *, sumo_safety: bool =
         sc = dataclasses.replace(_scenario(kw), sumo_safety=bool(sumo_safety))
         base.scenario, base.dt, base.J_max = sc, sc.dt, sc.J_max
     # as the torch evaluation builds it (harness.run_profile): the deployed chain, less the training-only terms
-    return TransformedEnv(base, chain_transforms(cfg, base, without=TRAINING_ONLY, deploy=True))
+    return TransformedEnv(base, chain_transforms(cfg, base, without=TRAINING_ONLY + tuple(without), deploy=True))
 
 
 def _scenario(kw: dict):
@@ -114,18 +121,23 @@ def _make_sumo_env(seed: int, device: str, **kw):
 
 
 def run_profile_sumo(cfg: DictConfig, policy, profile: str, *, episodes: int, seed: int, policy_factory=None,
-                     workers: int = 2, sumo_safety: bool = False):
+                     workers: int = 2, sumo_safety: bool = False, without: tuple[str, ...] = (),
+                     init_spacing: float | None = None):
     """``harness.run_profile`` on SUMO: ``episodes`` deterministic episodes in rounds of ``workers``.
 
-    ``workers=0``: one episode at a time in this process (no worker processes; tests).
+    ``workers=0``: one episode at a time in this process (no worker processes; tests). ``without``: transforms
+    dropped from the chain (the layer-free runs drop ``harness.LAYER_FREE_WITHOUT``); ``init_spacing``: the CAV
+    starts this many m behind its leader (None: the profile's standard start).
     """
     seeds = episode_seeds(seed, episodes)
     overrides = eval_env_overrides(cfg, profile)
+    if init_spacing is not None:
+        overrides["init_spacing"] = float(init_spacing)
     per_round = max(1, int(workers))
     tds = []
     for r in range(math.ceil(len(seeds) / per_round)):
         env = make_sumo_eval_env(cfg, seeds[r * per_round:(r + 1) * per_round], sumo_safety=sumo_safety,
-                                 in_process=workers == 0, **overrides)
+                                 in_process=workers == 0, without=without, **overrides)
         try:
             pol = policy_factory(env) if policy_factory is not None else policy
             torch.manual_seed(seed)
@@ -158,9 +170,9 @@ def evaluate_on_sumo(cfg: DictConfig, policy=None, *, policy_factory=None, profi
     seed = int(cfg.eval.seed if seed is None else seed)
     workers = min(int(workers), episodes)  # 0: in this process, one episode at a time
 
-    def run(cfg_, policy_, profile, *, episodes, seed, policy_factory=None, **_):
+    def run(cfg_, policy_, profile, *, episodes, seed, policy_factory=None, without=(), init_spacing=None):
         return run_profile_sumo(cfg_, policy_, profile, episodes=episodes, seed=seed, policy_factory=policy_factory,
-                                workers=workers, sumo_safety=sumo_safety)
+                                workers=workers, sumo_safety=sumo_safety, without=without, init_spacing=init_spacing)
 
     report, traces = harness.evaluate(cfg, policy, policy_factory=policy_factory, profiles=profiles,
                                       episodes=episodes, seed=seed, runner=run)
@@ -183,10 +195,12 @@ def evaluate_on_torch_seeds(cfg: DictConfig, policy=None, *, policy_factory=None
     seed = int(cfg.eval.seed if seed is None else seed)
     torch_run = harness.run_profile
 
-    def run(cfg_, policy_, profile, *, episodes, seed, policy_factory=None, **_):
+    def run(cfg_, policy_, profile, *, episodes, seed, policy_factory=None, without=(), init_spacing=None):
+        rows = None if init_spacing is None else [float(init_spacing)]
         ms, trs = [], []
         for s in episode_seeds(seed, episodes):
-            m, tr = torch_run(cfg_, policy_, profile, episodes=1, seed=s, policy_factory=policy_factory)
+            m, tr = torch_run(cfg_, policy_, profile, episodes=1, seed=s, policy_factory=policy_factory,
+                              without=tuple(without), init_spacing_rows=rows)
             ms.append(m)
             trs.append(tr)
         m = {k: torch.cat([x[k] for x in ms]) for k in ms[0]}
