@@ -17,7 +17,8 @@ all groups, one on what the learned residual adds (``results.residual_line``) an
 (``results.kinds_table``: stop-and-go, braking to a standstill, above the training speeds, ...), and draws
 ``OUT/scorecard.png`` (per case, the policy's jerk and return against the bars' reference over
 the runs, beside the classical controllers'). A group whose output is already there is not run again (``--rerun``
-to run it anyway) unless it lacks a classical controller now asked for::
+to run it anyway) unless it lacks a classical controller now asked for. ``--backend sumo`` evaluates every run and
+classical controller in SUMO instead (``ring_generalization.py --backend sumo``)::
 
     python benchmarks/ring_scorecard.py --runs outputs/results/ring_safety_net_seed{0,1,2,3,4} --jobs 2 \\
         --out outputs/results/scorecard
@@ -49,15 +50,17 @@ CLASSICAL = ("idm:s0=7.0;v0=40.0;b=2.0", "cacc", "zero_residual")  # IDM_cav (b 
 
 
 def jobs(runs: list[str], groups: list[str], out: Path, *, episodes: int, seconds: float, classical,
-         settings=()) -> list[tuple]:
-    """``(output directory, ring_generalization.py arguments)`` of every run and group."""
+         settings=(), backend: str = "torch", workers: int = 2) -> list[tuple]:
+    """``(output directory, ring_generalization.py arguments)`` of every run and group (``backend="sumo"``: in SUMO,
+    ``workers`` SUMO processes a job)."""
     todo = []
     for i, run in enumerate(runs):
         for g in groups:
             d = out / f"run{i}" / g
             args = ["--checkpoint", run, "--episodes", str(episodes), "--seconds", str(seconds), "--seed",
                     str(SEEDS[g]), "--cases", g, "--baselines", "idm", *(classical if i == 0 else ()), "--out", str(d),
-                    *(["--set", *settings] if settings else [])]
+                    *(["--set", *settings] if settings else []),
+                    *(["--backend", "sumo", "--workers", str(workers)] if backend == "sumo" else [])]
             todo.append((d, args))
     return todo
 
@@ -117,6 +120,10 @@ def main(argv=None) -> str:
     p.add_argument("--set", nargs="+", default=[], metavar="transforms.KEY=VALUE",
                    help="deploy-time settings of the runs' transforms, passed to ring_generalization.py --set (a "
                         "variant scored without retraining; use a new --out)")
+    p.add_argument("--backend", choices=("torch", "sumo"), default="torch",
+                   help="the simulator of every evaluation (default torch; sumo: ring_generalization.py --backend sumo, "
+                        "about 15 times slower; use a new --out)")
+    p.add_argument("--sumo-workers", type=int, default=2, help="with --backend sumo: SUMO processes a job (default 2)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     unknown = sorted(set(a.groups) - set(SEEDS))
@@ -127,6 +134,8 @@ def main(argv=None) -> str:
         raise SystemExit(f"--runs: {missing} do not exist; allowed: run directories or final.pt files")
     if a.jobs < 1:
         raise SystemExit(f"--jobs: {a.jobs} is invalid; allowed: >= 1")
+    if a.sumo_workers < 0:
+        raise SystemExit(f"--sumo-workers: {a.sumo_workers} is invalid; allowed: >= 0 (0: SUMO in the job's process)")
     from mixed_traffic.evaluation.policies import checkpoint_config
 
     first_cfg = checkpoint_config(a.runs[0])[0]  # read once: the classical controllers and the kinds of head need it
@@ -141,17 +150,21 @@ def main(argv=None) -> str:
     )
 
     out = Path(a.out)
-    todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical, settings=a.set)
+    todo = jobs(a.runs, a.groups, out, episodes=a.episodes, seconds=a.seconds, classical=a.classical, settings=a.set,
+                backend=a.backend, workers=a.sumo_workers)
     script = str(Path(__file__).with_name("ring_generalization.py"))
     if not a.rerun:  # a group already there must have been run with the same --set, or it would be scored as this one
         import json
 
         for d, _ in todo:
             f = d / "generalization.json"
-            done = json.loads(f.read_text()).get("set", []) if f.is_file() else list(a.set)
-            if done != list(a.set):
-                raise SystemExit(f"--set: {d} was evaluated with --set {done}, not {list(a.set)}; allowed: a new --out "
-                                 "for another variant, or --rerun")
+            done = json.loads(f.read_text()) if f.is_file() else {"set": list(a.set), "backend": a.backend}
+            if done.get("set", []) != list(a.set):
+                raise SystemExit(f"--set: {d} was evaluated with --set {done.get('set', [])}, not {list(a.set)}; "
+                                 "allowed: a new --out for another variant, or --rerun")
+            if done.get("backend", "torch") != a.backend:  # written before --backend existed: torch
+                raise SystemExit(f"--backend: {d} was evaluated on {done.get('backend', 'torch')}, not {a.backend}; "
+                                 "allowed: a new --out for another simulator, or --rerun")
 
     def lacking(d: Path, args: list[str]) -> list[str]:
         """The baselines of ``args`` that the group's output in ``d`` lacks (evaluated before they were asked for)."""
@@ -192,7 +205,8 @@ def main(argv=None) -> str:
                 "that meet every bar, the policy's on every run, each classical controller's without a layer on the "
                 "same episodes.", "", kinds_table([e for m in margins.values() for e in m], kinds,
                                                   above=above), ""] if kinds else [])
-    head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case", "",
+    head = [f"# Scorecard: {len(a.runs)} run(s), {a.episodes} episodes of {a.seconds:g} s a case"
+            + (" (every controller in SUMO)" if a.backend == "sumo" else ""), "",
             f"{clean} of {total} cases meet every bar on every run."
             + (" " + beaten_line(total - clean, beaten, "each table's last column: the bars each classical "
                                   "controller misses") if clean < total else ""), "", *([residual, ""] if residual else []),

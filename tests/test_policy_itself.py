@@ -419,6 +419,16 @@ def test_a_one_profile_runner_reports_the_same_layer_free_runs():
         assert one["acceptance"][key] == pytest.approx(batched["acceptance"][key]), key
     assert not one["acceptance"]["no_layer_zero_collisions"] and not one["acceptance"]["pass"]
     assert "random_steps_without_layer" in traces and "random_steps_without_layer_close" in traces
+    # a runner that cannot drop the layer is refused, not trusted to have done it
+    from mixed_traffic.evaluation.harness import run_profile
+
+    def swallowing(cfg_, policy_, profile, *, episodes, seed, policy_factory=None, **_):
+        return run_profile(cfg_, policy_, profile, episodes=episodes, seed=seed, policy_factory=policy_factory)
+
+    with pytest.raises(TypeError, match="runner must take the keyword arguments without= and init_spacing="):
+        evaluate(cfg, runner=swallowing, **kw)
+    cfg.eval.without_layer = False
+    assert "without_layer" not in evaluate(cfg, runner=swallowing, **kw)[0]
 
 
 def test_jerk_by_time_splits_the_reports_jerk_into_windows_that_add_up(tmp_path, benchmark_script):
@@ -1146,7 +1156,13 @@ def test_scorecard_runs_every_group_once_and_counts_the_clean_cases(tmp_path, be
     assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match=r"--set: .* was evaluated with --set \[\], not"):  # another variant: a new --out
         mod.main([*args, "--set", "transforms.safety_layer.deployed_s_max=false"])
+    with pytest.raises(SystemExit, match=r"--backend: .* was evaluated on torch, not sumo"):  # another simulator too
+        mod.main([*args, "--backend", "sumo"])
     assert (out / "run0" / "fresh_3" / "generalization.json").stat().st_mtime_ns == stamp
+    # in SUMO: every job runs ring_generalization.py --backend sumo with the workers asked for
+    sumo_jobs = mod.jobs([str(run)], ["fresh_3"], out, episodes=1, seconds=10.0, classical=[], backend="sumo", workers=3)
+    assert sumo_jobs[0][1][-4:] == ["--backend", "sumo", "--workers", "3"]
+    assert "--backend" not in mod.jobs([str(run)], ["fresh_3"], out, episodes=1, seconds=10.0, classical=[])[0][1]
     with pytest.raises(SystemExit, match=r"--groups: \['fresh_99'\] are not groups"):
         mod.main(["--runs", str(run), "--groups", "fresh_99", "--out", str(tmp_path / "bad")])
     with pytest.raises(SystemExit, match=r"--runs: .* do not exist"):

@@ -46,6 +46,7 @@ report); the SUMO evaluation seeds its episodes alike (:mod:`mixed_traffic.evalu
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
 from functools import partial
@@ -472,6 +473,11 @@ def evaluate(cfg: DictConfig, policy=None, *, policy_factory=None, profiles=None
         results, free = run_batched(cfg, policy, profiles, episodes=episodes, seed=seed,
                                     policy_factory=policy_factory, layer_free=layer_free)
     else:  # one profile and start at a time: with the layer, then without it from each start
+        if layer_free and not {"without", "init_spacing"} <= set(inspect.signature(runner).parameters):
+            # a runner that swallowed them (**kwargs) would run the layer and report it as the layer-free runs
+            raise TypeError("evaluate: runner must take the keyword arguments without= and init_spacing= to run the "
+                            "policy without its safety layer (eval.without_layer=true); allowed: a runner that takes "
+                            "them, or eval.without_layer=false")
         starts = {prof: layer_free_starts(cfg, prof) if layer_free else [] for prof in profiles}
         bar = tqdm(total=sum(1 + len(s) for s in starts.values()), desc="evaluation", unit="run", leave=False,
                    disable=not cfg.get("trainer", {}).get("progress", True))
