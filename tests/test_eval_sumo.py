@@ -60,7 +60,6 @@ def test_sumo_report_matches_torch_and_safety_layer_holds():
         assert free_s[label]["collisions"] == free_t[label]["collisions"] == 1, label
     assert abs(float(traces["random_steps_without_layer_close"].gap[0, 0]) - 8.0) < 1.0  # it did start 8 m back
     assert not sumo["acceptance"]["no_layer_zero_collisions"] and not sumo["acceptance"]["pass"]
-    assert "random_steps_without_layer_close" in traces
 
 
 def test_sumo_evaluates_the_deployed_chain_as_torch_does():

@@ -35,8 +35,8 @@ The policy itself: with ``cfg.eval.without_layer`` (the default) and a safety la
 also runs without the layer from the standard start and from each ``cfg.eval.close_starts`` gap, in episodes of
 its own (the layer and its intervention cost dropped from the chain, the SUMO ring started at that gap), so the
 report holds the same layer-free bars as the torch evaluation's (``report["without_layer"]``, the acceptance's
-``no_layer_*``). That runs each profile's episodes 1 + len(close_starts) + 1 times; ``eval.without_layer=false``
-skips it.
+``no_layer_*``). That runs each profile's episodes 2 + len(close_starts) times (with the layer, then from each
+start without it); ``eval.without_layer=false`` skips it.
 """
 
 from __future__ import annotations
